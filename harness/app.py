@@ -1,0 +1,49 @@
+"""The Hydra app behind ``python -m harness``: compose the config, build the parts, run a task."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from harness.metrics import update_metrics
+from harness.paths import CONF_DIR
+
+log = logging.getLogger(__name__)
+
+
+def run(cfg: DictConfig, output_dir: Path) -> dict:
+    """Build plant, recorder and task from ``cfg``; run the task; return its metrics."""
+    task_name = HydraConfig.get().runtime.choices["task"]
+    plant = instantiate(cfg.plant)
+    make_recorder = instantiate(cfg.recorder)
+    task = instantiate(cfg.task)
+    with make_recorder(path=output_dir / f"{task_name}.rrd") as recorder:
+        metrics = task(plant=plant, recorder=recorder, output_dir=output_dir)
+    document = update_metrics(output_dir / "metrics.json", task_name, metrics)
+    log.info("wrote %s (%s)", output_dir / "metrics.json", ", ".join(document))
+    return metrics
+
+
+def _one_line(error: BaseException) -> str:
+    while isinstance(error, InstantiationException) and error.__cause__ is not None:
+        error = error.__cause__
+    return f"{type(error).__name__}: {error}".splitlines()[0]
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+def main(cfg: DictConfig) -> None:
+    output_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        run(cfg, output_dir)
+    except (ValueError, InstantiationException, RuntimeError) as error:
+        message = _one_line(error)
+        log.error(message)
+        print(f"error: {message}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,7 @@
+"""Repository-relative locations built from the package location, never the working directory."""
+
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+CONF_DIR = REPO_ROOT / "conf"
+MJCF_DIR = REPO_ROOT / "models" / "mjcf"
