@@ -236,7 +236,8 @@ class Characterize:
                     2 * c2 / (resistance.air_density_kg_per_m3 * resistance.frontal_area_m2)
                 ),
                 "rolling_resistance_fit": float(c0 / (mass * G)),
-                "coast_down_linear_term_n_s_per_m": float(c1),
+                "coast_down_effective_mass_kg": float(mass + spin_inertia / radius**2),
+                "coast_down_fit_n": {"constant": float(c0), "linear": float(c1), "quadratic": float(c2)},
                 "drag_coefficient_true": resistance.drag_coefficient,
                 "rolling_resistance_true": resistance.rolling_resistance,
             },
@@ -300,11 +301,18 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
 
     coast = runs["coast_down"]
     ax = axes[1, 2]
-    ax.plot(coast.time_s, coast.states[:, 0] * 3.6)
-    ax.set(xlabel="time (s)", ylabel="speed (km/h)",
+    speed = coast.states[:, 0]
+    mass = metrics["coast_down_effective_mass_kg"]
+    ax.plot(speed * 3.6, -np.gradient(speed, coast.time_s) * mass, lw=3, alpha=0.5,
+            label="measured (effective mass × deceleration)")
+    fit = metrics["coast_down_fit_n"]
+    ax.plot(speed * 3.6, fit["constant"] + fit["linear"] * speed + fit["quadratic"] * speed**2,
+            ls="--", color="k", label="fit A + B v + C v²")
+    ax.set(xlabel="speed (km/h)", ylabel="resistance (N)",
            title=f"coast-down: Cd {metrics['drag_coefficient_fit']:.3f} "
-           f"(true {metrics['drag_coefficient_true']:.3f}), Cr {metrics['rolling_resistance_fit']:.4f} "
-           f"(true {metrics['rolling_resistance_true']:.4f})")
+           f"(true {metrics['drag_coefficient_true']:.3f})\n"
+           f"Cr {metrics['rolling_resistance_fit']:.4f} (true {metrics['rolling_resistance_true']:.4f})")
+    ax.legend()
     for ax in axes.flat:
         ax.grid(alpha=0.3)
     fig.suptitle(f"Plant characterization: {name}")

@@ -1,0 +1,26 @@
+"""Shared fixtures: plants are built once per session (building compiles nothing after the first)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from harness.characterize import Characterize
+from harness.plant import Sedan
+from harness.recorder import Recorder
+
+
+@pytest.fixture(scope="session")
+def sedan() -> Sedan:
+    return Sedan()
+
+
+@pytest.fixture(scope="session")
+def characterized(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
+    """Characterization metrics of the dry and the wet sedan (about 3 s each)."""
+    results = {}
+    for name, config in {"sedan": {}, "sedan_wet": {"tire": {"road_friction": 0.5}}}.items():
+        out = Path(tmp_path_factory.mktemp(name))
+        results[name] = Characterize()(Sedan(name=name, **config), Recorder(), out)
+    return results

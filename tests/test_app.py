@@ -1,0 +1,73 @@
+"""``python -m harness`` works from any directory and leaves its results in the run directory."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+CHARACTERIZE_KEYS = {
+    "understeer_gradient_deg_per_g",
+    "max_lateral_accel_mps2",
+    "yaw_rate_rise_time_s",
+    "yaw_rate_overshoot",
+    "braking_distance_100kph_m",
+    "accel_0_100kph_s",
+    "top_speed_mps",
+    "kinematic_yaw_rate_error",
+    "drag_coefficient_fit",
+    "rolling_resistance_fit",
+}
+
+
+def run_harness(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "harness", *overrides],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+@pytest.fixture(scope="module")
+def characterize_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """One characterization run of the wet plant, started from an unrelated directory."""
+    cwd = tmp_path_factory.mktemp("elsewhere")
+    run_dir = tmp_path_factory.mktemp("runs") / "wet"
+    result = run_harness(cwd, "task=characterize", "plant=sedan_wet", f"hydra.run.dir={run_dir}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    return cwd, run_dir
+
+
+def test_metrics_json_has_the_documented_characterize_keys(characterize_run) -> None:
+    _, run_dir = characterize_run
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert CHARACTERIZE_KEYS <= set(metrics["characterize"])
+    assert metrics["characterize"]["road_friction"] == 0.5  # the override reached the plant
+
+
+def test_recording_and_figure_land_in_the_run_directory_only(characterize_run) -> None:
+    cwd, run_dir = characterize_run
+    assert (run_dir / "characterize.rrd").stat().st_size > 10_000
+    assert (run_dir / "characterize.png").stat().st_size > 10_000
+    assert list(cwd.iterdir()) == []  # nothing written where the command was started
+    assert not list(run_dir.glob("*.tmp*"))
+
+
+def test_a_wrong_config_value_fails_with_one_line(tmp_path: Path) -> None:
+    result = run_harness(
+        tmp_path, "plant.tire.road_friction=-1", "recorder=none", f"hydra.run.dir={tmp_path}/run"
+    )
+    assert result.returncode == 2
+    error_lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert error_lines == ["error: ValueError: plant.tire.road_friction must be > 0 (got -1)"]
+
+
+def test_an_unknown_plant_is_named_with_the_choices(tmp_path: Path) -> None:
+    result = run_harness(tmp_path, "plant=tractor", f"hydra.run.dir={tmp_path}/run")
+    assert result.returncode != 0
+    assert "plant/tractor" in result.stderr and "sedan_wet" in result.stderr
