@@ -25,12 +25,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from harness.plant import Sedan  # noqa: E402
-from harness.recorder import Recorder  # noqa: E402
-from harness.rollout import SpeedHold, Trajectory, simulate  # noqa: E402
+from harness.plant import Sedan
+from harness.recorder import Recorder
+from harness.rollout import SpeedHold, Trajectory, simulate
 
 G = 9.81
 KPH_100 = 100 / 3.6
@@ -115,7 +115,11 @@ class Characterize:
         vx = run.states[:, 0]
         # delta - L r / vx isolates the understeer term K a_y without assuming constant speed.
         excess = delta - wheelbase * run.states[:, 2] / np.maximum(vx, 1.0)
-        gradient = float(np.polyfit(lateral[linear], excess[linear], 1)[0]) if linear.sum() > 10 else np.nan
+        gradient = (
+            float(np.polyfit(lateral[linear], excess[linear], 1)[0])
+            if linear.sum() > 10
+            else np.nan
+        )
         self._ramp = (run.inputs[:, 0], lateral)
         return (
             "steady_state_circle",
@@ -220,7 +224,8 @@ class Characterize:
         decel = -np.gradient(vx, run.time_s)
         mass = float(plant.model.body_subtreemass[1])
         spin_inertia = sum(
-            plant.model.body(f"wheel_{c}").inertia[1] + plant.model.dof_armature[plant.model.joint(f"spin_{c}").dofadr[0]]
+            plant.model.body(f"wheel_{c}").inertia[1]
+            + plant.model.dof_armature[plant.model.joint(f"spin_{c}").dofadr[0]]
             for c in ("fl", "fr", "rl", "rr")
         )
         radius = plant._rolling_radius
@@ -237,7 +242,11 @@ class Characterize:
                 ),
                 "rolling_resistance_fit": float(c0 / (mass * G)),
                 "coast_down_effective_mass_kg": float(mass + spin_inertia / radius**2),
-                "coast_down_fit_n": {"constant": float(c0), "linear": float(c1), "quadratic": float(c2)},
+                "coast_down_fit_n": {
+                    "constant": float(c0),
+                    "linear": float(c1),
+                    "quadratic": float(c2),
+                },
                 "drag_coefficient_true": resistance.drag_coefficient,
                 "rolling_resistance_true": resistance.rolling_resistance,
             },
@@ -257,61 +266,94 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
     lateral = moving_average(ramp.lateral_accel_mps2, int(0.5 / plant.dt))
     ax = axes[0, 0]
     ax.plot(lateral / G, ramp.inputs[:, 0], lw=1.2)
-    ax.set(xlabel="lateral acceleration (g)", ylabel="steering-wheel angle (deg)",
-           title=f"ISO 4138 ramp at {ramp.states[0, 0] * 3.6:.0f} km/h\n"
-           f"K = {metrics['understeer_gradient_deg_per_g']:.2f} deg/g, "
-           f"max a_y = {metrics['max_lateral_accel_mps2']:.2f} m/s²")
+    ax.set(
+        xlabel="lateral acceleration (g)",
+        ylabel="steering-wheel angle (deg)",
+        title=f"ISO 4138 ramp at {ramp.states[0, 0] * 3.6:.0f} km/h\n"
+        f"K = {metrics['understeer_gradient_deg_per_g']:.2f} deg/g, "
+        f"max a_y = {metrics['max_lateral_accel_mps2']:.2f} m/s²",
+    )
     ax.axvline(plant.params.tire.road_friction, color="k", ls=":", label="μ g")
     ax.legend(loc="upper left")
 
     step = runs["step_steer"]
     ax = axes[0, 1]
     ax.plot(step.time_s, np.rad2deg(step.states[:, 2]), label="yaw rate (deg/s)")
-    ax.plot(step.time_s, step.inputs[:, 0] / plant.params.steering.steering_ratio * 10,
-            ls="--", label="road-wheel angle ×10 (deg)")
+    ax.plot(
+        step.time_s,
+        step.inputs[:, 0] / plant.params.steering.steering_ratio * 10,
+        ls="--",
+        label="road-wheel angle ×10 (deg)",
+    )
     rise = metrics["yaw_rate_rise_time_s"]
-    ax.set(xlabel="time (s)", title=f"ISO 7401 step steer at 80 km/h\n"
-           f"response {rise if rise is None else f'{rise:.3f}'} s, "
-           f"overshoot {metrics['yaw_rate_overshoot']:.3f}")
+    ax.set(
+        xlabel="time (s)",
+        title=f"ISO 7401 step steer at 80 km/h\n"
+        f"response {rise if rise is None else f'{rise:.3f}'} s, "
+        f"overshoot {metrics['yaw_rate_overshoot']:.3f}",
+    )
     ax.legend()
 
     brake = runs["braking"]
     ax = axes[0, 2]
     ax.plot(brake.distance_m, brake.states[:, 0] * 3.6)
-    ax.set(xlabel="distance (m)", ylabel="speed (km/h)",
-           title=f"full braking from 100 km/h: {metrics['braking_distance_100kph_m']:.1f} m")
+    ax.set(
+        xlabel="distance (m)",
+        ylabel="speed (km/h)",
+        title=f"full braking from 100 km/h: {metrics['braking_distance_100kph_m']:.1f} m",
+    )
 
     launch = runs["launch"]
     ax = axes[1, 0]
     ax.plot(launch.time_s, launch.states[:, 0] * 3.6)
     ax.axhline(100, color="k", ls=":")
     accel = metrics["accel_0_100kph_s"]
-    ax.set(xlabel="time (s)", ylabel="speed (km/h)",
-           title=f"launch at throttle {Sedan.input_high[1]}: 0-100 km/h "
-           f"{'not reached' if accel is None else f'{accel:.1f} s'}")
+    ax.set(
+        xlabel="time (s)",
+        ylabel="speed (km/h)",
+        title=f"launch at throttle {Sedan.input_high[1]}: 0-100 km/h "
+        f"{'not reached' if accel is None else f'{accel:.1f} s'}",
+    )
 
     low = runs["low_speed_turn"]
     ax = axes[1, 1]
     delta = np.deg2rad(low.inputs[:, 0]) / plant.params.steering.steering_ratio
     ax.plot(low.time_s, low.states[:, 2], label="yaw rate")
     ax.plot(low.time_s, low.states[:, 0] * delta / _wheelbase(plant), ls="--", label="v δ / L")
-    ax.set(xlabel="time (s)", ylabel="rad/s",
-           title=f"low-speed turn: kinematic error {metrics['kinematic_yaw_rate_error']:.2%}")
+    ax.set(
+        xlabel="time (s)",
+        ylabel="rad/s",
+        title=f"low-speed turn: kinematic error {metrics['kinematic_yaw_rate_error']:.2%}",
+    )
     ax.legend()
 
     coast = runs["coast_down"]
     ax = axes[1, 2]
     speed = coast.states[:, 0]
     mass = metrics["coast_down_effective_mass_kg"]
-    ax.plot(speed * 3.6, -np.gradient(speed, coast.time_s) * mass, lw=3, alpha=0.5,
-            label="measured (effective mass × deceleration)")
+    ax.plot(
+        speed * 3.6,
+        -np.gradient(speed, coast.time_s) * mass,
+        lw=3,
+        alpha=0.5,
+        label="measured (effective mass × deceleration)",
+    )
     fit = metrics["coast_down_fit_n"]
-    ax.plot(speed * 3.6, fit["constant"] + fit["linear"] * speed + fit["quadratic"] * speed**2,
-            ls="--", color="k", label="fit A + B v + C v²")
-    ax.set(xlabel="speed (km/h)", ylabel="resistance (N)",
-           title=f"coast-down: Cd {metrics['drag_coefficient_fit']:.3f} "
-           f"(true {metrics['drag_coefficient_true']:.3f})\n"
-           f"Cr {metrics['rolling_resistance_fit']:.4f} (true {metrics['rolling_resistance_true']:.4f})")
+    ax.plot(
+        speed * 3.6,
+        fit["constant"] + fit["linear"] * speed + fit["quadratic"] * speed**2,
+        ls="--",
+        color="k",
+        label="fit A + B v + C v²",
+    )
+    ax.set(
+        xlabel="speed (km/h)",
+        ylabel="resistance (N)",
+        title=f"coast-down: Cd {metrics['drag_coefficient_fit']:.3f} "
+        f"(true {metrics['drag_coefficient_true']:.3f})\n"
+        f"Cr {metrics['rolling_resistance_fit']:.4f} "
+        f"(true {metrics['rolling_resistance_true']:.4f})",
+    )
     ax.legend()
     for ax in axes.flat:
         ax.grid(alpha=0.3)

@@ -1,4 +1,4 @@
-"""``metrics.json``: the harness's public result, merged section by section and written atomically."""
+"""``metrics.json``: the harness's public result, merged by section and written atomically."""
 
 from __future__ import annotations
 
@@ -39,7 +39,9 @@ def update_metrics(path: Path, section: str, values: Mapping[str, Any]) -> dict[
         try:
             document = json.loads(path.read_text())
         except json.JSONDecodeError as error:
-            raise ValueError(f"{path} is not valid JSON ({error}); move it away and rerun") from error
+            raise ValueError(
+                f"{path} is not valid JSON ({error}); move it away and rerun"
+            ) from error
     document[section] = _plain(values)
     write_json_atomic(path, document)
     return document

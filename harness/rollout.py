@@ -49,7 +49,7 @@ def simulate(
     stop: StopCondition | None = None,
 ) -> Trajectory:
     """Reset ``plant`` (at rest, or rolling at ``speed_mps``) and drive it with ``policy``."""
-    steps = int(round(duration_s / plant.dt))
+    steps = round(duration_s / plant.dt)
     states = np.empty((steps + 1, 3))
     inputs = np.zeros((steps + 1, 2))
     poses = np.empty((steps + 1, 3))

@@ -1,4 +1,4 @@
-"""Shared fixtures: plants are built once per session (building compiles nothing after the first)."""
+"""Shared fixtures: plants and their characterization are built once per test session."""
 
 from __future__ import annotations
 

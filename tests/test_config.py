@@ -38,7 +38,8 @@ def test_every_plant_composes_loads_resets_and_steps(name: str) -> None:
 
 def test_plant_variants_differ_only_where_configured() -> None:
     dry, wet, loaded = (
-        instantiate(compose_config(f"plant={n}").plant) for n in ("sedan", "sedan_wet", "sedan_loaded")
+        instantiate(compose_config(f"plant={n}").plant)
+        for n in ("sedan", "sedan_wet", "sedan_loaded")
     )
     assert wet.params.tire.road_friction == 0.5 and dry.params.tire.road_friction == 0.9
     assert wet.params.chassis == dry.params.chassis

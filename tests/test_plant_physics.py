@@ -44,7 +44,9 @@ def test_low_speed_yaw_rate_is_kinematic(characterized: dict) -> None:
 
 def test_coast_down_recovers_drag_and_rolling_resistance(characterized: dict) -> None:
     metrics = characterized["sedan"]
-    assert metrics["drag_coefficient_fit"] == pytest.approx(metrics["drag_coefficient_true"], rel=0.05)
+    assert metrics["drag_coefficient_fit"] == pytest.approx(
+        metrics["drag_coefficient_true"], rel=0.05
+    )
     assert metrics["rolling_resistance_fit"] == pytest.approx(
         metrics["rolling_resistance_true"], rel=0.1
     )
@@ -76,7 +78,7 @@ def test_understeer_grows_with_speed(sedan: Sedan) -> None:
     ratios = []
     for speed in (10.0, 20.0, 30.0):
         hold = SpeedHold(speed, sedan.dt)
-        run = simulate(sedan, lambda t, x: (20.0, hold(x[0])), 5.0, speed_mps=speed)
+        run = simulate(sedan, lambda t, x, hold=hold: (20.0, hold(x[0])), 5.0, speed_mps=speed)
         vx, _, yaw_rate = run.states[-1]
         kinematic = vx * np.deg2rad(20.0 / 16.0) / 2.7
         ratios.append(yaw_rate / kinematic)

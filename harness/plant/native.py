@@ -135,7 +135,8 @@ def build_library() -> Path:
             subprocess.run(command, check=True, capture_output=True, text=True)
         except FileNotFoundError as error:
             raise RuntimeError(
-                f"C compiler '{compiler}' not found: install gcc (or set CC) to build the tyre model"
+                f"C compiler '{compiler}' not found: install gcc (or set CC) to build the tyre "
+                "model"
             ) from error
         except subprocess.CalledProcessError as error:
             raise RuntimeError(f"building {SOURCE.name} failed: {error.stderr.strip()}") from error

@@ -120,7 +120,7 @@ class SedanParams:
 
     @property
     def substeps(self) -> int:
-        return int(round(self.control_period_s / self.physics_timestep_s))
+        return round(self.control_period_s / self.physics_timestep_s)
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any] | None = None) -> SedanParams:

@@ -198,9 +198,10 @@ class Sedan:
         vx = cos * velocity[0] + sin * velocity[1]
         vy = -sin * velocity[0] + cos * velocity[1]
         # Free-joint angular velocity is in the body frame; rotate to world, take z.
-        omega_world = self.data.xmat[self._chassis].reshape(3, 3) @ self.data.qvel[
-            self._free_dof + 3 : self._free_dof + 6
-        ]
+        omega_world = (
+            self.data.xmat[self._chassis].reshape(3, 3)
+            @ self.data.qvel[self._free_dof + 3 : self._free_dof + 6]
+        )
         return np.array([vx, vy, omega_world[2]])
 
     @property

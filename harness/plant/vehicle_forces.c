@@ -185,7 +185,8 @@ void vehicle_control(const mjModel* m, mjData* d) {
 
     // Longitudinal slip is stiff (spin inertia / r^2 is ~10 kg): evaluate Fx at the end of the
     // step by one linearised backward-Euler step of the slip velocity v_s = vx - omega r, whose
-    // rate is the car's acceleration (previous step) minus r * (wheel torques - Fx r) / I.
+    // rate is the car's acceleration (previous step: qacc_warmstart, part of MuJoCo's state)
+    // minus r * (wheel torques - Fx r) / I.
     // Steady states are those of the Magic Formula; the explicit step would diverge below
     // ~25 m/s at dt = 1 ms.
     mjtNum h = 1e-4;
@@ -193,7 +194,8 @@ void vehicle_control(const mjModel* m, mjData* d) {
                          longitudinal_force(kappa - h, alpha, kx, dx, p)) / (2 * h);
     mjtNum dfx_dvs = -dfx_dkappa / denom;
     if (dfx_dvs > 0) dfx_dvs = 0;
-    mjtNum accel = d->qacc[chassis_dof] * ex[0] + d->qacc[chassis_dof + 1] * ex[1];
+    const mjtNum* previous_accel = d->qacc_warmstart + chassis_dof;
+    mjtNum accel = previous_accel[0] * ex[0] + previous_accel[1] * ex[1];
     mjtNum r_over_i = rolling_radius / spin_inertia;
     mjtNum vs_rate = accel - r_over_i * (torque - fx * rolling_radius);
     mjtNum vs_change = dt * vs_rate / (1 - dt * rolling_radius * r_over_i * dfx_dvs);

@@ -1,0 +1,557 @@
+"""Rerun logging for every rollout of the project, behind one small interface.
+
+Why a single module: the plant, the characterization app and the training code all
+produce the same kind of data (time, vehicle state, driver inputs, pose). Logging them
+in one place keeps entity paths, units, colors and the viewer layout identical across
+recordings, so two ``.rrd`` files can be opened side by side and compared.
+
+Entity layout of a rollout called ``name`` (all series on the ``sim_time`` duration
+timeline, in seconds)::
+
+    {name}/state/<state_name>     scalar per sample (SI units)
+    {name}/input/<input_name>     scalar per sample (deg, pedal fraction / -MPa)
+    {name}/extra/<key>            scalar(s) per sample
+    {name}/car                    static Boxes3D + Arrows3D, moved by a Transform3D column
+    {name}/path                   static LineStrips3D of the whole trajectory
+
+:class:`Recorder` is the null recorder (selected with ``recorder=none``);
+:class:`RerunRecorder` writes a ``.rrd`` file. Both are built the same way from Hydra
+(``_partial_: true``) and then called with ``path=...``.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+__all__ = ["CAR_HEIGHT_M", "CAR_LENGTH_M", "CAR_WIDTH_M", "Recorder", "RerunRecorder"]
+
+CAR_LENGTH_M = 4.6
+CAR_WIDTH_M = 1.8
+CAR_HEIGHT_M = 1.45
+
+SIM_TIMELINE = "sim_time"
+_CHASE_HALF_EXTENT_M = 8.0
+
+# Colors (RGB) cycled over series so that e.g. vx is always the same color in every recording.
+_PALETTE: tuple[tuple[int, int, int], ...] = (
+    (228, 26, 28),
+    (55, 126, 184),
+    (77, 175, 74),
+    (152, 78, 163),
+    (255, 127, 0),
+    (166, 86, 40),
+    (247, 129, 191),
+    (153, 153, 153),
+)
+# Units shown in plot titles for the project's standard series names.
+_UNITS = {
+    "vx": "m/s",
+    "vy": "m/s",
+    "yaw_rate": "rad/s",
+    "steer_wheel_deg": "deg",
+    "pedal": "throttle 0..1 / -brake MPa",
+}
+_STATE_OFFSET = 0
+_INPUT_OFFSET = 4
+_EXTRA_OFFSET = 3
+
+
+def _color(i: int) -> tuple[int, int, int]:
+    """Palette color ``i`` (cycled), so a given series keeps its color across recordings."""
+    return _PALETTE[i % len(_PALETTE)]
+
+
+def _title(name: str) -> str:
+    """Plot title: the series name, with its unit when it is a standard one."""
+    unit = _UNITS.get(name)
+    return f"{name} [{unit}]" if unit else name
+
+
+def _root(path: str) -> str:
+    """Entity path from a user path whose ``/`` separate levels (rollout name, series path).
+
+    Every segment is escaped so names with spaces, dots or brackets stay one segment, and
+    the same string is used for logging and in the blueprint (they must match exactly).
+    """
+    segments = [seg for seg in str(path).split("/") if seg]
+    if not segments:
+        raise ValueError(f"entity path is empty: {path!r}")
+    return "/" + "/".join(rr.escape_entity_path_part(seg) for seg in segments)
+
+
+def _child(root: str, *parts: str) -> str:
+    """Append single (escaped) segments to an already escaped entity path."""
+    return "/".join([root, *(rr.escape_entity_path_part(str(p)) for p in parts)])
+
+
+def _as_time(name: str, time_s: np.ndarray) -> np.ndarray:
+    """Validate a 1-D, finite time vector."""
+    t = np.asarray(time_s)
+    if t.ndim != 1:
+        raise ValueError(f"{name} must be 1-D (N,), got shape {t.shape}")
+    if t.shape[0] == 0:
+        raise ValueError(f"{name} is empty")
+    if not (np.issubdtype(t.dtype, np.integer) or np.issubdtype(t.dtype, np.floating)):
+        raise ValueError(f"{name} must be numeric, got dtype {t.dtype}")
+    if np.issubdtype(t.dtype, np.floating) and not np.all(np.isfinite(t)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return t
+
+
+def _as_matrix(name: str, x: np.ndarray, n: int, cols: int | None) -> np.ndarray:
+    """Return ``x`` as float64 (n, cols) (or (n, k) with any k>=1 when cols is None)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim == 1 and cols in (None, 1):
+        a = a[:, None]
+    if a.ndim != 2 or a.shape[0] != n or (cols is not None and a.shape[1] != cols):
+        want = f"({n}, {cols})" if cols is not None else f"({n},) or ({n}, k)"
+        raise ValueError(f"{name} must have shape {want}, got {np.shape(x)}")
+    if a.shape[1] == 0:
+        raise ValueError(f"{name} has no columns, got shape {np.shape(x)}")
+    return a
+
+
+def _time_column(timeline: str, t: np.ndarray) -> rr.TimeColumn:
+    """Integer times become a sequence timeline, float times a duration in seconds."""
+    if np.issubdtype(t.dtype, np.integer):
+        return rr.TimeColumn(timeline, sequence=t.astype(np.int64))
+    # Round to whole nanoseconds ourselves: rerun truncates, which turns 0.29 s into 0.289999999 s.
+    ns = np.round(t.astype(np.float64) * 1e9).astype(np.int64)
+    return rr.TimeColumn(timeline, duration=ns.astype("timedelta64[ns]"))
+
+
+def _chase_eye(pose: np.ndarray) -> dict[str, tuple[float, float, float]]:
+    """Initial 3D camera: behind, left of and above the car at its first finite pose.
+
+    The view tracks the car, keeping this offset, so the box stays readable instead of
+    being a dot in a whole-trajectory overview (zoom out with the mouse for that).
+    """
+    finite = np.flatnonzero(np.all(np.isfinite(pose), axis=1))
+    x0, y0, yaw0 = pose[finite[0]] if finite.size else (0.0, 0.0, 0.0)
+    c, s = float(np.cos(yaw0)), float(np.sin(yaw0))
+    back, left, up = 20.0, 8.0, 12.0
+    return {
+        "eye_position": (
+            float(x0) - back * c - left * s,
+            float(y0) - back * s + left * c,
+            up,
+        ),
+        "eye_target": (float(x0), float(y0), CAR_HEIGHT_M / 2),
+    }
+
+
+@dataclass
+class _RolloutInfo:
+    """What the blueprint needs to know about one logged rollout."""
+
+    name: str
+    root: str
+    states: list[str]
+    inputs: list[str]
+    extras: list[str]
+    has_pose: bool
+    eye_position: tuple[float, float, float] | None = None
+    eye_target: tuple[float, float, float] | None = None
+
+
+@dataclass
+class _SeriesInfo:
+    """What the blueprint needs to know about one ``series()`` path."""
+
+    root: str
+    timeline: str
+    keys: list[str] = field(default_factory=list)
+
+
+class Recorder:
+    """Null recorder: accepts every call and writes nothing.
+
+    It is also the base class, so calling code never needs ``if recorder is not None``.
+    The constructor accepts (and ignores) the arguments of :class:`RerunRecorder` so that
+    both Hydra partials are called the same way: ``partial(path=run_dir / "x.rrd")``.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str] | None = None,
+        application_id: str = "koopman_vehicle",
+    ) -> None:
+        """Ignore all arguments (kept for call compatibility with RerunRecorder)."""
+        del path, application_id
+
+    def rollout(
+        self,
+        name: str,
+        time_s: np.ndarray,
+        states: np.ndarray,
+        inputs: np.ndarray,
+        poses: np.ndarray | None = None,
+        state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
+        input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
+        extra: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        """Log one rollout of N samples under entity path ``name``.
+
+        Args:
+            name: Rollout name, used as the entity-path root (may contain ``/``).
+            time_s: (N,) simulation time in seconds.
+            states: (N, len(state_names)) vehicle state, SI units (m/s, m/s, rad/s).
+            inputs: (N, len(input_names)) steering-wheel angle [deg] and pedal
+                (>=0 throttle fraction, <0 minus brake pressure [MPa]).
+            poses: (N, 3) world pose (X [m], Y [m], yaw [rad]), or None.
+            state_names: Names of the state columns.
+            input_names: Names of the input columns.
+            extra: Further named (N,) or (N, k) series, logged under ``{name}/extra/<key>``.
+        """
+
+    def series(
+        self,
+        path: str,
+        time_s: np.ndarray,
+        values: Mapping[str, np.ndarray],
+        timeline: str = SIM_TIMELINE,
+    ) -> None:
+        """Log named scalar series under ``path/<key>`` (e.g. loss curves).
+
+        Args:
+            path: Entity path root for the series (may contain ``/``).
+            time_s: (N,) times; integer dtype gives a sequence timeline (epoch, step),
+                float dtype a duration timeline in seconds.
+            values: Mapping key -> (N,) or (N, k) values.
+            timeline: Timeline name.
+        """
+
+    def close(self) -> None:
+        """Finish the recording (no-op here)."""
+
+    def __enter__(self) -> Self:
+        """Use as ``with recorder as rec:`` so the file is finalized even on errors."""
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        """Close on exit; what was logged before an exception is kept (useful to debug it)."""
+        self.close()
+
+
+class RerunRecorder(Recorder):
+    """Recorder writing a Rerun ``.rrd`` file through a private recording stream.
+
+    Data goes to ``<path>.tmp`` while logging; :meth:`close` adds the default blueprint,
+    flushes, finalizes the file and atomically renames it to ``path``. A run that dies
+    therefore leaves at most a ``.tmp`` file, never a truncated ``.rrd``.
+
+    A private :class:`rerun.RecordingStream` (not the global one) is used so that several
+    recorders can live in one process (tests, parallel rollouts) without mixing data.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        application_id: str = "koopman_vehicle",
+    ) -> None:
+        """Open the stream and start writing to the temporary file.
+
+        Args:
+            path: Final ``.rrd`` path; parent directories are created.
+            application_id: Rerun application id (the viewer groups recordings by it).
+        """
+        super().__init__()
+        self.path = Path(path)
+        self.tmp_path = self.path.with_name(self.path.name + ".tmp")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._rollouts: list[_RolloutInfo] = []
+        self._series: dict[str, _SeriesInfo] = {}
+        self._timeline_kinds: dict[str, str] = {SIM_TIMELINE: "duration"}
+        self._closed = False
+        # Explicit random recording id: without it, every stream of the process shares one id.
+        self._rec = rr.RecordingStream(application_id, recording_id=uuid.uuid4())
+        self._rec.save(self.tmp_path)
+        self._rec.send_recording_name(self.path.stem)
+
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` has been called."""
+        return self._closed
+
+    def _check_open(self) -> rr.RecordingStream:
+        """The stream, or RuntimeError: logging after close() would silently be lost."""
+        if self._closed:
+            raise RuntimeError(f"recorder for {self.path} is closed")
+        return self._rec
+
+    def _send_scalars(
+        self,
+        entity: str,
+        index: rr.TimeColumn,
+        values: np.ndarray,
+        names: Sequence[str],
+        colors: Sequence[tuple[int, int, int]],
+    ) -> None:
+        """Bulk-send a (N, k) scalar block plus static line styling for the plot legend."""
+        rec = self._check_open()
+        scalars = values[:, 0] if values.shape[1] == 1 else values
+        rec.send_columns(
+            entity, indexes=[index], columns=rr.Scalars.columns(scalars=scalars), strict=True
+        )
+        rec.log(
+            entity,
+            rr.SeriesLines(names=list(names), colors=list(colors)),
+            static=True,
+            strict=True,
+        )
+
+    def rollout(
+        self,
+        name: str,
+        time_s: np.ndarray,
+        states: np.ndarray,
+        inputs: np.ndarray,
+        poses: np.ndarray | None = None,
+        state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
+        input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
+        extra: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        """Log one rollout; see :meth:`Recorder.rollout`. Raises ValueError on bad shapes."""
+        self._check_open()
+        if not isinstance(name, str):
+            raise ValueError(f"name must be a string, got {name!r}")
+        root = _root(name)
+        if any(r.root == root for r in self._rollouts):
+            raise ValueError(f"rollout {name!r} was already logged in {self.path}")
+
+        # Validate everything before sending anything, so a bad call logs nothing.
+        t = _as_time("time_s", time_s)
+        n = t.shape[0]
+        if np.issubdtype(t.dtype, np.integer):
+            t = t.astype(np.float64)
+        state_names = [str(s) for s in state_names]
+        input_names = [str(s) for s in input_names]
+        x = _as_matrix("states", states, n, len(state_names))
+        u = _as_matrix("inputs", inputs, n, len(input_names))
+        pose = None if poses is None else _as_matrix("poses", poses, n, 3)
+        extras = {str(k): _as_matrix(f"extra[{k!r}]", v, n, None) for k, v in (extra or {}).items()}
+
+        index = _time_column(SIM_TIMELINE, t)
+        for i, s in enumerate(state_names):
+            self._send_scalars(
+                _child(root, "state", s), index, x[:, i : i + 1], [s], [_color(_STATE_OFFSET + i)]
+            )
+        for i, s in enumerate(input_names):
+            self._send_scalars(
+                _child(root, "input", s), index, u[:, i : i + 1], [s], [_color(_INPUT_OFFSET + i)]
+            )
+        for j, (key, v) in enumerate(extras.items()):
+            k = v.shape[1]
+            names = [key] if k == 1 else [f"{key}[{c}]" for c in range(k)]
+            colors = [_color(_EXTRA_OFFSET + j + c) for c in range(k)]
+            self._send_scalars(_child(root, "extra", key), index, v, names, colors)
+        if pose is not None:
+            self._log_car(root, index, pose)
+
+        self._rollouts.append(
+            _RolloutInfo(
+                name=name,
+                root=root,
+                states=state_names,
+                inputs=input_names,
+                extras=list(extras),
+                has_pose=pose is not None,
+                **({} if pose is None else _chase_eye(pose)),
+            )
+        )
+
+    def _log_car(self, root: str, index: rr.TimeColumn, pose: np.ndarray) -> None:
+        """Static car box + heading arrow moved by a Transform3D column; static full path."""
+        rec = self._check_open()
+        # Z up (X forward, Y left) on the 3D view origin, so the ground grid is the XY plane.
+        rec.log(root, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, strict=True)
+        car = _child(root, "car")
+        rec.log(
+            car,
+            rr.Boxes3D(
+                half_sizes=[[CAR_LENGTH_M / 2, CAR_WIDTH_M / 2, CAR_HEIGHT_M / 2]],
+                centers=[[0.0, 0.0, CAR_HEIGHT_M / 2]],
+                colors=[(30, 144, 255)],
+                fill_mode="solid",
+            ),
+            static=True,
+            strict=True,
+        )
+        # Arrow from the car center to the front bumper: the box alone hides the heading.
+        rec.log(
+            car,
+            rr.Arrows3D(
+                origins=[[0.0, 0.0, CAR_HEIGHT_M + 0.05]],
+                vectors=[[CAR_LENGTH_M / 2 + 1.0, 0.0, 0.0]],
+                colors=[(255, 200, 0)],
+                radii=0.12,
+            ),
+            static=True,
+            strict=True,
+        )
+        # Invisible points around the car: the 3D view, when it starts tracking an entity,
+        # zooms to 1.5x that entity's bounding sphere. Tracking this anchor (instead of the
+        # 4.6 m box) gives a chase camera ~17 m away that shows the car and the road around it.
+        half = _CHASE_HALF_EXTENT_M
+        rec.log(
+            f"{car}/chase_anchor",
+            rr.Points3D(
+                [[half, half, 0.0], [-half, -half, CAR_HEIGHT_M]],
+                radii=0.001,
+                colors=[(0, 0, 0, 0)],
+            ),
+            static=True,
+            strict=True,
+        )
+        yaw = pose[:, 2]
+        quat = np.zeros((pose.shape[0], 4))
+        quat[:, 2] = np.sin(yaw / 2.0)
+        quat[:, 3] = np.cos(yaw / 2.0)
+        translation = np.zeros((pose.shape[0], 3))
+        translation[:, :2] = pose[:, :2]
+        rec.send_columns(
+            car,
+            indexes=[index],
+            columns=rr.Transform3D.columns(translation=translation, quaternion=quat),
+            strict=True,
+        )
+        path = translation.copy()
+        path[:, 2] = 0.02  # just above the ground grid so it is not z-fighting
+        rec.log(
+            _child(root, "path"),
+            rr.LineStrips3D([path], colors=[(220, 50, 50)], radii=0.08),
+            static=True,
+            strict=True,
+        )
+
+    def series(
+        self,
+        path: str,
+        time_s: np.ndarray,
+        values: Mapping[str, np.ndarray],
+        timeline: str = SIM_TIMELINE,
+    ) -> None:
+        """Log scalar series; see :meth:`Recorder.series`. Raises ValueError on bad shapes."""
+        self._check_open()
+        if not isinstance(path, str):
+            raise ValueError(f"path must be a string, got {path!r}")
+        if not values:
+            raise ValueError("values is empty")
+        root = _root(path)
+        t = _as_time("time_s", time_s)
+        kind = "sequence" if np.issubdtype(t.dtype, np.integer) else "duration"
+        known = self._timeline_kinds.setdefault(timeline, kind)
+        if known != kind:
+            raise ValueError(
+                f"timeline {timeline!r} is a {known} timeline, but time_s of dtype {t.dtype} "
+                f"would make it a {kind} timeline"
+            )
+        info = self._series.get(root)
+        if info is not None and info.timeline != timeline:
+            raise ValueError(f"series {path!r} already uses timeline {info.timeline!r}")
+        blocks = {
+            str(k): _as_matrix(f"values[{k!r}]", v, t.shape[0], None) for k, v in values.items()
+        }
+
+        index = _time_column(timeline, t)
+        if info is None:
+            info = self._series[root] = _SeriesInfo(root=root, timeline=timeline)
+        for key, v in blocks.items():
+            if key not in info.keys:
+                info.keys.append(key)
+            j = info.keys.index(key)
+            k = v.shape[1]
+            names = [key] if k == 1 else [f"{key}[{c}]" for c in range(k)]
+            colors = [_color(j + c) for c in range(k)]
+            self._send_scalars(_child(root, key), index, v, names, colors)
+
+    def blueprint(self) -> rrb.Blueprint | None:
+        """Default viewer layout for what has been logged so far (None if nothing was).
+
+        One tab per rollout: 3D car + path on the left, one plot per state in the middle,
+        one plot per input (and per extra) on the right. Series get one tab with one plot
+        per ``series()`` path. Time axes of all plots are linked so zooming is shared.
+        """
+        tabs: list[rrb.Container | rrb.View] = []
+        link = rrb.TimeAxis(link="LinkToGlobal")
+        for r in self._rollouts:
+            state_views = [
+                rrb.TimeSeriesView(origin=_child(r.root, "state", s), name=_title(s), axis_x=link)
+                for s in r.states
+            ]
+            other_views = [
+                rrb.TimeSeriesView(origin=_child(r.root, "input", s), name=_title(s), axis_x=link)
+                for s in r.inputs
+            ] + [
+                rrb.TimeSeriesView(origin=_child(r.root, "extra", k), name=k, axis_x=link)
+                for k in r.extras
+            ]
+            columns: list[rrb.Container | rrb.View] = []
+            shares: list[float] = []
+            if r.has_pose:
+                columns.append(
+                    rrb.Spatial3DView(
+                        origin=r.root,
+                        contents=[f"{r.root}/car/**", f"{r.root}/path"],
+                        name="car",
+                        line_grid=rrb.LineGrid3D(visible=True, spacing=1.0),
+                        eye_controls=rrb.EyeControls3D(
+                            tracking_entity=f"{r.root}/car/chase_anchor",
+                            position=r.eye_position,
+                            look_target=r.eye_target,
+                        ),
+                    )
+                )
+                shares.append(2.0)
+            columns += [rrb.Vertical(*state_views), rrb.Vertical(*other_views)]
+            shares += [1.0, 1.0]
+            tabs.append(rrb.Horizontal(*columns, column_shares=shares, name=r.name))
+        if self._series:
+            views = [
+                rrb.TimeSeriesView(origin=s.root, name=s.root.lstrip("/"))
+                for s in self._series.values()
+            ]
+            tabs.append(rrb.Grid(*views, name="series"))
+        if not tabs:
+            return None
+        timeline = SIM_TIMELINE if self._rollouts else next(iter(self._series.values())).timeline
+        return rrb.Blueprint(
+            rrb.Tabs(*tabs, active_tab=0),
+            rrb.TimePanel(timeline=timeline, state="collapsed"),
+            rrb.SelectionPanel(state="collapsed"),
+            rrb.BlueprintPanel(state="collapsed"),
+        )
+
+    def close(self) -> None:
+        """Send the blueprint, finalize the file and move it to its final path (idempotent).
+
+        The blueprint is built here, from the complete list of rollouts and series, and
+        sent as default + active blueprint: it lands in the same ``.rrd`` as a blueprint
+        store. The stream is flushed (blocking) and disconnected, which writes the RRD
+        footer and closes the file, before the atomic rename (``os.replace``).
+        """
+        if self._closed:
+            return
+        self._closed = True
+        rec = self._rec
+        bp = self.blueprint()
+        if bp is not None:
+            rec.send_blueprint(bp, make_active=True, make_default=True)
+        rec.flush()
+        rec.disconnect()
+        self.tmp_path.replace(self.path)

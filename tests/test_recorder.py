@@ -1,0 +1,340 @@
+"""Tests for harness.recorder: write .rrd files, read them back with rerun.chunk.RrdReader."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from rerun.chunk import Chunk, RrdReader
+
+from harness.recorder import CAR_HEIGHT_M, CAR_LENGTH_M, CAR_WIDTH_M, Recorder, RerunRecorder
+
+N = 1000
+NAME = "step_steer"
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _rollout_data(n: int = N, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.01
+    states = rng.standard_normal((n, 3))
+    states[5, 1] = np.nan  # NaN is allowed and must survive the round trip
+    inputs = np.c_[90.0 * np.sin(t), np.where(t < 5.0, 0.3, -2.0)]
+    yaw = np.linspace(0.0, 3.0, n)
+    poses = np.c_[np.cumsum(np.cos(yaw)) * 0.1, np.cumsum(np.sin(yaw)) * 0.1, yaw]
+    return {"time_s": t, "states": states, "inputs": inputs, "poses": poses}
+
+
+def _chunks(path: Path) -> list[Chunk]:
+    """All chunks of the (single) recording store of an .rrd file."""
+    return RrdReader(path).stream().to_chunks()
+
+
+def _temporal(chunks: list[Chunk], entity: str, component: str) -> tuple[pa.Array, pa.Array, str]:
+    """(index values, component values, index name) of the temporal chunk(s) of one entity."""
+    found = [
+        c
+        for c in chunks
+        if c.entity_path == entity
+        and not c.is_static
+        and component in c.to_record_batch().schema.names
+    ]
+    assert found, f"no temporal {component} on {entity}"
+    index_names = {name for c in found for name in c.timeline_names}
+    assert len(index_names) == 1, index_names
+    (index,) = index_names
+    batches = [c.to_record_batch() for c in found]
+    times = pa.concat_arrays([b.column(index) for b in batches])
+    values = pa.concat_arrays([b.column(component) for b in batches])
+    return times, values, index
+
+
+def _static(chunks: list[Chunk], entity: str, component: str) -> list:
+    """Last static value of a component on an entity."""
+    found = [
+        c.to_record_batch().column(component).to_pylist()[-1]
+        for c in chunks
+        if c.entity_path == entity and c.is_static and component in c.to_record_batch().schema.names
+    ]
+    assert found, f"no static {component} on {entity}"
+    return found[-1]
+
+
+@pytest.fixture
+def written(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    """A closed recording with one full rollout and one integer-timeline series."""
+    d = _rollout_data()
+    t = d["time_s"]
+    extra = {"ay": d["states"][:, 0] * 2.0, "pred_state": d["states"] + 1.0}
+    path = tmp_path / "run" / "characterize.rrd"  # parent dir does not exist yet
+    with RerunRecorder(path) as rec:
+        rec.rollout(NAME, t, d["states"], d["inputs"], poses=d["poses"], extra=extra)
+        rec.series("train/loss", np.arange(20), {"train": np.linspace(1, 0, 20)}, timeline="epoch")
+    return path, {**d, **{f"extra_{k}": v for k, v in extra.items()}}
+
+
+def test_rollout_round_trip(written: tuple[Path, dict[str, np.ndarray]]) -> None:
+    """Every series lands under the documented entity path with its N values and times."""
+    path, d = written
+    assert path.is_file()
+    assert not path.with_name(path.name + ".tmp").exists()
+    reader = RrdReader(path)
+    assert len(reader.recordings()) == 1
+    assert reader.recordings()[0].application_id == "koopman_vehicle"
+    chunks = _chunks(path)
+    entities = {c.entity_path for c in chunks}
+    expected = {f"/{NAME}/state/{s}" for s in ("vx", "vy", "yaw_rate")}
+    expected |= {f"/{NAME}/input/{s}" for s in ("steer_wheel_deg", "pedal")}
+    expected |= {f"/{NAME}/extra/ay", f"/{NAME}/extra/pred_state", f"/{NAME}/car", f"/{NAME}/path"}
+    expected |= {"/train/loss/train"}
+    assert expected <= entities, expected - entities
+
+    times, values, index = _temporal(chunks, f"/{NAME}/state/vx", "Scalars:scalars")
+    assert index == "sim_time"
+    assert times.type == pa.duration("ns")
+    assert len(values) == N
+    assert all(len(v) == 1 for v in values.to_pylist())
+    np.testing.assert_allclose(values.flatten().to_numpy(), d["states"][:, 0], rtol=1e-6)
+    np.testing.assert_array_equal(
+        times.cast(pa.int64()).to_numpy(), np.round(d["time_s"] * 1e9).astype(np.int64)
+    )
+
+    _, vy, _ = _temporal(chunks, f"/{NAME}/state/vy", "Scalars:scalars")
+    np.testing.assert_allclose(vy.flatten().to_numpy(zero_copy_only=False), d["states"][:, 1])
+    assert np.isnan(vy.flatten().to_numpy(zero_copy_only=False)[5])
+
+    _, pedal, _ = _temporal(chunks, f"/{NAME}/input/pedal", "Scalars:scalars")
+    np.testing.assert_allclose(pedal.flatten().to_numpy(), d["inputs"][:, 1])
+
+    # (N, k) extra: k scalars per row.
+    _, pred, _ = _temporal(chunks, f"/{NAME}/extra/pred_state", "Scalars:scalars")
+    np.testing.assert_allclose(
+        np.asarray(pred.to_pylist(), dtype=float), d["extra_pred_state"], rtol=1e-6
+    )
+    assert _static(chunks, f"/{NAME}/extra/pred_state", "SeriesLines:names") == [
+        "pred_state[0]",
+        "pred_state[1]",
+        "pred_state[2]",
+    ]
+    assert _static(chunks, f"/{NAME}/state/vx", "SeriesLines:names") == ["vx"]
+
+
+def test_series_are_bulk_logged_on_their_timeline_only(
+    written: tuple[Path, dict[str, np.ndarray]],
+) -> None:
+    """send_columns adds no log_time/log_tick timelines; per-row rr.log would."""
+    path, _ = written
+    chunks = _chunks(path)
+    vx = [c for c in chunks if c.entity_path == f"/{NAME}/state/vx" and not c.is_static]
+    assert [c.timeline_names for c in vx] == [["sim_time"]]
+    assert sum(c.num_rows for c in vx) == N
+
+    times, values, index = _temporal(chunks, "/train/loss/train", "Scalars:scalars")
+    assert index == "epoch"
+    assert times.type == pa.int64()  # integer time_s -> sequence timeline
+    np.testing.assert_array_equal(times.to_numpy(), np.arange(20))
+    np.testing.assert_allclose(values.flatten().to_numpy(), np.linspace(1, 0, 20))
+
+
+def test_car_pose_and_path(written: tuple[Path, dict[str, np.ndarray]]) -> None:
+    """The car box is sized as documented and its transform column follows the poses."""
+    path, d = written
+    chunks = _chunks(path)
+    car = f"/{NAME}/car"
+    half = np.asarray(_static(chunks, car, "Boxes3D:half_sizes"))
+    np.testing.assert_allclose(half, [[CAR_LENGTH_M / 2, CAR_WIDTH_M / 2, CAR_HEIGHT_M / 2]])
+    center = np.asarray(_static(chunks, car, "Boxes3D:centers"))
+    np.testing.assert_allclose(center, [[0.0, 0.0, CAR_HEIGHT_M / 2]])
+
+    _, trans, index = _temporal(chunks, car, "Transform3D:translation")
+    assert index == "sim_time"
+    assert len(trans) == N
+    xyz = np.asarray([row[0] for row in trans.to_pylist()])
+    np.testing.assert_allclose(xyz[:, :2], d["poses"][:, :2], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(xyz[:, 2], 0.0)
+    _, quat, _ = _temporal(chunks, car, "Transform3D:quaternion")
+    q = np.asarray([row[0] for row in quat.to_pylist()])  # xyzw
+    yaw = 2.0 * np.arctan2(q[:, 2], q[:, 3])
+    np.testing.assert_allclose(yaw, d["poses"][:, 2], atol=1e-5)
+    np.testing.assert_allclose(q[:, :2], 0.0)
+
+    strips = _static(chunks, f"/{NAME}/path", "LineStrips3D:strips")
+    assert len(strips) == 1
+    pts = np.asarray(strips[0])
+    assert pts.shape == (N, 3)
+    np.testing.assert_allclose(pts[:, :2], d["poses"][:, :2], rtol=1e-5, atol=1e-5)
+
+
+def _blueprint_views(path: Path) -> list[tuple[str, str]]:
+    """(class identifier, space origin) of every view in the file's blueprint store."""
+    reader = RrdReader(path)
+    stores = reader.blueprints()
+    assert len(stores) == 1, stores
+    views = []
+    for c in reader.stream(store=stores[0]).to_chunks():
+        b = c.to_record_batch()
+        if "ViewBlueprint:class_identifier" in b.schema.names:
+            kind = b.column("ViewBlueprint:class_identifier").to_pylist()[-1][0]
+            origin = b.column("ViewBlueprint:space_origin").to_pylist()[-1][0]
+            views.append((kind, origin))
+    return views
+
+
+def test_blueprint_is_in_the_file(written: tuple[Path, dict[str, np.ndarray]]) -> None:
+    """The default layout is stored in the .rrd (a blueprint store), one view per series."""
+    path, _ = written
+    views = _blueprint_views(path)
+    assert ("3D", f"/{NAME}") in views
+    for s in ("state/vx", "state/vy", "state/yaw_rate", "input/steer_wheel_deg", "input/pedal"):
+        assert ("TimeSeries", f"/{NAME}/{s}") in views
+    assert ("TimeSeries", f"/{NAME}/extra/ay") in views
+    assert ("TimeSeries", "/train/loss") in views
+
+
+def test_rollout_without_pose_has_no_3d(tmp_path: Path) -> None:
+    """Without poses there is no car, no path and no 3D view."""
+    d = _rollout_data(50)
+    path = tmp_path / "a.rrd"
+    with RerunRecorder(path) as rec:
+        rec.rollout("no_pose", d["time_s"], d["states"], d["inputs"])
+    entities = {c.entity_path for c in _chunks(path)}
+    assert "/no_pose/state/vx" in entities
+    assert "/no_pose/car" not in entities
+    assert "/no_pose/path" not in entities
+    kinds = {k for k, _ in _blueprint_views(path)}
+    assert kinds == {"TimeSeries"}
+
+
+def test_null_recorder_writes_nothing(tmp_path: Path) -> None:
+    """recorder=none accepts the same calls and creates no file."""
+    d = _rollout_data(10)
+    with Recorder(path=tmp_path / "x.rrd", application_id="whatever") as rec:
+        rec.rollout("r", d["time_s"], d["states"], d["inputs"], poses=d["poses"])
+        rec.series("s", np.arange(3), {"a": np.zeros(3)})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_partials_are_called_the_same_way(tmp_path: Path) -> None:
+    """Hydra `_partial_: true` configs for both recorders accept `path=` at run time."""
+    hydra_utils = pytest.importorskip("hydra.utils")
+    omegaconf = pytest.importorskip("omegaconf")
+    made = {}
+    for name in ("rerun", "none"):
+        cfg = omegaconf.OmegaConf.load(REPO / "conf" / "recorder" / f"{name}.yaml")
+        factory = hydra_utils.instantiate(cfg)
+        assert isinstance(factory, functools.partial)
+        rec = factory(path=tmp_path / f"{name}.rrd")
+        rec.close()
+        made[name] = rec
+    assert type(made["rerun"]) is RerunRecorder
+    assert type(made["none"]) is Recorder
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rerun.rrd"]
+
+
+def test_tmp_file_until_close(tmp_path: Path) -> None:
+    """Data goes to a .tmp file; only close() publishes the final .rrd (atomic rename)."""
+    path = tmp_path / "a.rrd"
+    tmp = tmp_path / "a.rrd.tmp"
+    d = _rollout_data(20)
+    rec = RerunRecorder(path)
+    rec.rollout("r", d["time_s"], d["states"], d["inputs"])
+    assert tmp.exists()
+    assert not path.exists()
+    rec.close()
+    assert path.exists()
+    assert not tmp.exists()
+    assert RrdReader(path).store().summary()  # footer/manifest written: file is complete
+    rec.close()  # idempotent
+    assert path.exists()
+    with pytest.raises(RuntimeError, match="closed"):
+        rec.rollout("r2", d["time_s"], d["states"], d["inputs"])
+
+
+def test_two_recorders_do_not_mix(tmp_path: Path) -> None:
+    """Each recorder has its own stream; interleaved logging stays in its own file."""
+    d = _rollout_data(30)
+    a, b = RerunRecorder(tmp_path / "a.rrd"), RerunRecorder(tmp_path / "b.rrd")
+    a.rollout("only_a", d["time_s"], d["states"], d["inputs"])
+    b.rollout("only_b", d["time_s"], d["states"], d["inputs"])
+    a.series("sa", np.arange(4), {"v": np.ones(4)}, timeline="step")
+    b.close()
+    a.close()
+    ea = {c.entity_path.split("/")[1] for c in _chunks(tmp_path / "a.rrd")}
+    eb = {c.entity_path.split("/")[1] for c in _chunks(tmp_path / "b.rrd")}
+    assert {"only_a", "sa"} <= ea
+    assert "only_b" not in ea
+    assert "only_b" in eb
+    assert not {"only_a", "sa"} & eb
+
+
+_D = _rollout_data(40)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "argname"),
+    [
+        ({"time_s": _D["time_s"][:, None]}, "time_s"),
+        ({"time_s": np.array([])}, "time_s"),
+        ({"time_s": np.r_[_D["time_s"][:-1], np.nan]}, "time_s"),
+        ({"states": _D["states"][:-1]}, "states"),
+        ({"states": _D["states"][:, :2]}, "states"),
+        ({"inputs": _D["inputs"][1:]}, "inputs"),
+        ({"inputs": _D["inputs"][:, 0]}, "inputs"),
+        ({"poses": _D["poses"][:, :2]}, "poses"),
+        ({"poses": _D["poses"][:-3]}, "poses"),
+        ({"extra": {"ay": np.zeros(39)}}, "extra"),
+        ({"extra": {"ay": np.zeros((40, 2, 2))}}, "extra"),
+    ],
+)
+def test_shape_mismatch_raises_and_logs_nothing(
+    tmp_path: Path, kwargs: dict[str, object], argname: str
+) -> None:
+    """A bad argument is named in a one-line ValueError, and nothing of the call is logged."""
+    path = tmp_path / "bad.rrd"
+    args = {k: _D[k] for k in ("time_s", "states", "inputs", "poses")} | kwargs
+    with RerunRecorder(path) as rec:
+        with pytest.raises(ValueError, match=argname) as err:
+            rec.rollout("bad", **args)  # type: ignore[arg-type]
+        assert "\n" not in str(err.value)
+    assert not any(c.entity_path.startswith("/bad") for c in _chunks(path))
+
+
+def test_series_and_name_errors(tmp_path: Path) -> None:
+    """Series shape, timeline-kind conflicts and duplicate/empty names raise ValueError."""
+    d = _rollout_data(10)
+    with RerunRecorder(tmp_path / "e.rrd") as rec:
+        with pytest.raises(ValueError, match="values"):
+            rec.series("loss", np.arange(5), {"train": np.zeros(4)}, timeline="epoch")
+        with pytest.raises(ValueError, match="time_s"):
+            rec.series("loss", np.zeros((5, 1)), {"train": np.zeros(5)}, timeline="epoch")
+        rec.series("loss", np.arange(5), {"train": np.zeros(5)}, timeline="epoch")
+        with pytest.raises(ValueError, match="epoch"):  # float time on a sequence timeline
+            rec.series("other", np.linspace(0, 1, 5), {"x": np.zeros(5)}, timeline="epoch")
+        with pytest.raises(ValueError, match="sim_time"):  # int time on the duration timeline
+            rec.series("other", np.arange(5), {"x": np.zeros(5)})
+        rec.rollout("r", d["time_s"], d["states"], d["inputs"])
+        with pytest.raises(ValueError, match="already"):
+            rec.rollout("r", d["time_s"], d["states"], d["inputs"])
+        with pytest.raises(ValueError, match="empty"):
+            rec.rollout("/", d["time_s"], d["states"], d["inputs"])
+
+
+def test_custom_names_and_escaping(tmp_path: Path) -> None:
+    """Custom state names and names needing escaping map to the documented entity paths."""
+    d = _rollout_data(15)
+    path = tmp_path / "c.rrd"
+    with RerunRecorder(path) as rec:
+        rec.rollout(
+            "sweep/run 1",
+            d["time_s"],
+            d["states"][:, :2],
+            d["inputs"][:, :1],
+            state_names=("u", "v"),
+            input_names=("delta",),
+        )
+    entities = {c.entity_path for c in _chunks(path)}
+    assert {"/sweep/run\\ 1/state/u", "/sweep/run\\ 1/state/v"} <= entities
+    assert "/sweep/run\\ 1/input/delta" in entities
