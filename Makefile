@@ -1,0 +1,34 @@
+# Newcomer entry points. `make run` and `make test` set everything up themselves.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+
+.PHONY: help setup run test bench format lint
+
+help:  ## list the targets
+	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(VENV)/.installed: $(BIN)/python pyproject.toml
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet torch==2.13.0  # CPU build from local disk; before the project
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $@
+
+setup: $(VENV)/.installed  ## create .venv and install the harness (editable) with dev tools
+
+run: setup  ## run the main job (results under outputs/<date>/<time>/)
+	$(BIN)/python -m harness $(ARGS)
+
+test: setup  ## lint, then the test suite (slow tests excluded)
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest
+
+bench: setup  ## benchmarks, printed as tables
+	$(BIN)/python -m bench.plant_throughput
+
+format: setup  ## format and autofix
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
