@@ -19,16 +19,17 @@ log = logging.getLogger(__name__)
 
 
 def run(cfg: DictConfig, output_dir: Path) -> dict:
-    """Build plant, recorder and task from ``cfg``; run the task; return its metrics."""
+    """Build plant, recorder and task from ``cfg``; run the task; return its metrics sections."""
     task_name = HydraConfig.get().runtime.choices["task"]
     plant = instantiate(cfg.plant)
     make_recorder = instantiate(cfg.recorder)
     task = instantiate(cfg.task)
     with make_recorder(path=output_dir / f"{task_name}.rrd") as recorder:
-        metrics = task(plant=plant, recorder=recorder, output_dir=output_dir)
-    document = update_metrics(output_dir / "metrics.json", task_name, metrics)
+        sections = task(plant=plant, recorder=recorder, output_dir=output_dir)
+    for section, values in sections.items():
+        document = update_metrics(output_dir / "metrics.json", section, values)
     log.info("wrote %s (%s)", output_dir / "metrics.json", ", ".join(document))
-    return metrics
+    return sections
 
 
 def _one_line(error: BaseException) -> str:

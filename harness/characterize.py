@@ -65,7 +65,7 @@ class Characterize:
         if not 0 < self.coast_end_speed_mps < self.coast_start_speed_mps:
             raise ValueError("task.coast_end_speed_mps must be in (0, task.coast_start_speed_mps)")
 
-    def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict:
+    def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, dict]:
         runs: dict[str, Trajectory] = {}
         metrics: dict[str, float | None] = {}
         for test in (
@@ -91,7 +91,7 @@ class Characterize:
         metrics["total_mass_kg"] = float(plant.model.body_subtreemass[1])
         metrics["clipped_inputs"] = plant.clipped_inputs
         plot(runs, metrics, plant, output_dir / "characterize.png")
-        return metrics
+        return {"characterize": metrics}
 
     # ISO 4138, constant speed, slowly increasing steering-wheel angle.
     def steady_state_circle(self, plant: Sedan, _: dict) -> tuple[str, Trajectory, dict]:

@@ -22,5 +22,5 @@ def characterized(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     results = {}
     for name, config in {"sedan": {}, "sedan_wet": {"tire": {"road_friction": 0.5}}}.items():
         out = Path(tmp_path_factory.mktemp(name))
-        results[name] = Characterize()(Sedan(name=name, **config), Recorder(), out)
+        results[name] = Characterize()(Sedan(name=name, **config), Recorder(), out)["characterize"]
     return results

@@ -71,3 +71,22 @@ def test_an_unknown_plant_is_named_with_the_choices(tmp_path: Path) -> None:
     result = run_harness(tmp_path, "plant=tractor", f"hydra.run.dir={tmp_path}/run")
     assert result.returncode != 0
     assert "plant/tractor" in result.stderr and "sedan_wet" in result.stderr
+
+
+def test_collect_task_writes_coverage_metrics_figure_and_recording(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    result = run_harness(
+        tmp_path,
+        "task=collect",
+        "data.episodes=3",
+        "data.min_steps=100",
+        "data.max_steps=150",
+        "data.split={train: 1, validation: 1, test: 1}",
+        f"data.root={tmp_path}/datasets",
+        f"hydra.run.dir={run_dir}",
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    data = json.loads((run_dir / "metrics.json").read_text())["data"]
+    assert data["coverage"]["episodes"] == 3 and data["coverage"]["frames"] > 300
+    assert Path(data["path"]).parent == tmp_path / "datasets"
+    assert (run_dir / "data_coverage.png").exists() and (run_dir / "collect.rrd").exists()

@@ -1,0 +1,52 @@
+"""``task=collect``: make (or reuse) the dataset, then record and summarise its coverage."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from harness.data import coverage
+from harness.data.store import DataConfig, Dataset, collect, load
+from harness.plant import Sedan
+from harness.recorder import Recorder
+
+
+def prepare(
+    plant: Sedan, data: DataConfig, recorder: Recorder, output_dir: Path
+) -> tuple[Dataset, dict]:
+    """Collect or reuse; write the coverage figure; record every episode; return the summary."""
+    dataset = load(collect(plant.params, data))
+    splits = {"train": dataset.train, "validation": dataset.validation, "test": dataset.test}
+    coverage.plot(splits, plant.params.tire.road_friction, output_dir / "data_coverage.png")
+    step = data.record_every
+    for split, episodes in splits.items():
+        for e in episodes:
+            recorder.rollout(
+                f"data/{split}/{e.name}",
+                e.time_s[::step],
+                e.states[::step],
+                e.inputs[::step],
+                e.poses[::step],
+                extra={"lateral_accel_mps2": coverage.lateral_accel(e)[::step]},
+            )
+    metrics = {
+        "key": dataset.key,
+        "path": str(dataset.path),
+        "split": {s: [e.name for e in episodes] for s, episodes in splits.items()},
+        "spun_episodes": sorted(n for n, v in dataset.manifest["episodes"].items() if v["spun"]),
+        "coverage": coverage.summary(dataset.episodes(), plant.params.tire.road_friction),
+        "normalizer": dataset.normalizer.to_dict(),
+    }
+    return dataset, metrics
+
+
+class Collect:
+    """The data stage alone: ``python -m harness task=collect data=paper``."""
+
+    def __init__(self, data: Mapping[str, Any]) -> None:
+        self.data = DataConfig.from_config(data)
+
+    def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
+        _, metrics = prepare(plant, self.data, recorder, output_dir)
+        return {"data": metrics}

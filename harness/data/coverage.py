@@ -1,0 +1,106 @@
+"""How much of the operating range a dataset covers: a summary for metrics.json and a figure."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from harness.data.episode import Episode, pedal_scale
+
+G = 9.81
+
+
+def lateral_accel(episode: Episode) -> np.ndarray:
+    vx, vy, yaw_rate = episode.states.T
+    return np.gradient(vy, episode.time_s) + vx * yaw_rate
+
+
+def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, float | int]:
+    """Coverage numbers, SI: frames, speed range, lateral acceleration relative to mu g."""
+    states = np.concatenate([e.states for e in episodes])
+    inputs = np.concatenate([e.inputs for e in episodes])
+    a_y = np.abs(np.concatenate([lateral_accel(e) for e in episodes]))
+    vx = states[:, 0]
+    limit = road_friction * G
+    return {
+        "episodes": len(episodes),
+        "frames": len(states),
+        "hours": float(len(states) * 0.01 / 3600),
+        "vx_max_mps": float(vx.max()),
+        "vx_p50_mps": float(np.median(vx)),
+        "fraction_below_5mps": float(np.mean(vx < 5.0)),
+        "fraction_above_25mps": float(np.mean(vx > 25.0)),
+        "vy_abs_max_mps": float(np.abs(states[:, 1]).max()),
+        "yaw_rate_abs_max_radps": float(np.abs(states[:, 2]).max()),
+        "lateral_accel_p99_mps2": float(np.percentile(a_y, 99)),
+        "lateral_accel_max_mps2": float(a_y.max()),
+        "fraction_lateral_above_half_mu_g": float(np.mean(a_y > 0.5 * limit)),
+        "fraction_lateral_above_0.8_mu_g": float(np.mean(a_y > 0.8 * limit)),
+        "steer_abs_p99_deg": float(np.percentile(np.abs(inputs[:, 0]), 99)),
+        "fraction_throttle": float(np.mean(inputs[:, 1] > 0)),
+        "fraction_brake": float(np.mean(inputs[:, 1] < 0)),
+        "fraction_hard_brake_above_6mpa": float(np.mean(inputs[:, 1] < -6.0)),
+    }
+
+
+def plot(splits: dict[str, Sequence[Episode]], road_friction: float, path: Path) -> None:
+    """Like the paper's training-data figure: every path, the state distribution, a_y and u."""
+    episodes = [e for split in splits.values() for e in split]
+    states = np.concatenate([e.states for e in episodes])
+    inputs = np.concatenate([e.inputs for e in episodes])
+    a_y = np.concatenate([lateral_accel(e) for e in episodes])
+    fig = plt.figure(figsize=(16, 9))
+    grid = fig.add_gridspec(2, 4)
+
+    ax = fig.add_subplot(grid[:, :2])
+    styles = {"train": "-", "validation": "--", "test": ":"}
+    for split, members in splits.items():
+        for e in members:
+            ax.plot(
+                e.poses[:, 0],
+                e.poses[:, 1],
+                styles.get(split, "-"),
+                lw=0.8,
+                label=f"{e.name} ({split})" if len(episodes) <= 12 else None,
+            )
+    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{len(episodes)} episodes (paths from rest)")
+    ax.set_aspect("equal", adjustable="datalim")
+    if len(episodes) <= 12:
+        ax.legend(fontsize=7, loc="best")
+
+    panels = [
+        (grid[0, 2], states[:, 0], states[:, 1], "vx (m/s)", "vy (m/s)"),
+        (grid[0, 3], states[:, 0], states[:, 2], "vx (m/s)", "yaw rate (rad/s)"),
+    ]
+    for cell, x, y, xlabel, ylabel in panels:
+        ax = fig.add_subplot(cell)
+        ax.hexbin(x, y, gridsize=50, bins="log", cmap="viridis", mincnt=1)
+        ax.set(xlabel=xlabel, ylabel=ylabel, title="state distribution (log count)")
+
+    ax = fig.add_subplot(grid[1, 2])
+    ax.hist(a_y / G, bins=80, log=True, color="tab:purple")
+    for sign in (-1, 1):
+        ax.axvline(sign * road_friction, color="k", ls=":")
+    ax.set(xlabel="lateral acceleration (g)", ylabel="frames", title="a_y, dotted: ±μg")
+
+    ax = fig.add_subplot(grid[1, 3])
+    ax.hexbin(
+        inputs[:, 0], pedal_scale(inputs[:, 1]), gridsize=50, bins="log", cmap="magma", mincnt=1
+    )
+    ax.set(
+        xlabel="steering-wheel angle (deg)",
+        ylabel="throttle / 0.2  |  −brake / 9.1 MPa",
+        title="inputs (log count)",
+    )
+    fig.suptitle(f"Driving data: {len(states):,} frames at 10 ms")
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)

@@ -1,0 +1,190 @@
+"""Driving data: a driver a person would recognise, and a store that never lies about its files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness.data.driver import DriverConfig, SyntheticDriver
+from harness.data.store import DataConfig, DatasetError, collect, content_key, load
+from harness.plant import Sedan, SedanParams
+from harness.rollout import simulate
+
+
+def tiny(root: Path, **changes) -> DataConfig:
+    values = dict(
+        episodes=4,
+        min_steps=150,
+        max_steps=250,
+        workers=1,
+        root=str(root),
+        split={"train": 2, "validation": 1, "test": 1},
+    )
+    values.update(changes)
+    return DataConfig(**values)
+
+
+@pytest.fixture(scope="module")
+def driven(sedan_module: Sedan):
+    config = DriverConfig()
+    runs = []
+    for seed in range(3):
+        driver = SyntheticDriver(
+            config, np.random.default_rng(seed), sedan_module.dt, road_friction=0.9
+        )
+        run = simulate(sedan_module, driver, 90.0, stop=lambda t, x, d=driver: d.spun)
+        runs.append((run, sedan_module.clipped_inputs))
+    return config, runs
+
+
+@pytest.fixture(scope="module")
+def sedan_module() -> Sedan:
+    return Sedan()
+
+
+def test_driver_inputs_stay_in_range_and_are_rate_limited(driven) -> None:
+    config, runs = driven
+    for run, clipped in runs:
+        steer, pedal = run.inputs[:-1].T
+        assert clipped == 0
+        assert np.all(np.abs(steer) <= 450.0)
+        assert np.all((pedal >= -9.1) & (pedal <= 0.2))
+        dt = 0.01
+        assert np.max(np.abs(np.diff(steer))) <= 2 * config.steer_rate_deg_per_s * dt + 1e-9
+        assert np.max(np.abs(np.diff(pedal))) <= config.brake_rate_mpa_per_s * dt + 1e-9
+
+
+def test_driver_never_goes_from_throttle_to_brake_without_lifting_off(driven) -> None:
+    _, runs = driven
+    for run, _ in runs:
+        pedal = run.inputs[:-1, 1]
+        sign_flips = np.nonzero(np.sign(pedal[1:]) * np.sign(pedal[:-1]) < 0)[0]
+        # A flip happens only from near zero: the foot left one pedal before the other.
+        assert np.all(np.abs(pedal[sign_flips]) <= 0.02 + 1e-9)
+        assert np.all(np.abs(pedal[sign_flips + 1]) <= 0.25 + 1e-9)
+
+
+def test_driver_starts_from_rest_with_a_random_wheel_and_explores_the_envelope(driven) -> None:
+    _, runs = driven
+    first_steers = {round(run.inputs[0, 0], 3) for run, _ in runs}
+    assert len(first_steers) == 3  # random initial steering-wheel angle per episode
+    for run, _ in runs:
+        np.testing.assert_array_equal(run.states[0], 0.0)
+        assert run.inputs[0, 1] <= 0.01  # throttle starts (near) zero
+    states = np.concatenate([run.states for run, _ in runs])
+    lateral = np.concatenate([np.abs(run.lateral_accel_mps2[2:]) for run, _ in runs])
+    inputs = np.concatenate([run.inputs for run, _ in runs])
+    assert states[:, 0].max() > 15.0 and np.mean(states[:, 0] < 5.0) > 0.05
+    assert lateral.max() > 0.7 * 0.9 * 9.81  # some segments near the friction limit
+    assert np.mean(inputs[:, 1] < 0) > 0.03 and np.mean(inputs[:, 1] > 0) > 0.3
+
+
+def test_driver_is_reproducible_from_its_seed(sedan_module: Sedan) -> None:
+    def drive(seed: int) -> np.ndarray:
+        driver = SyntheticDriver(
+            DriverConfig(), np.random.default_rng(seed), 0.01, road_friction=0.9
+        )
+        return simulate(sedan_module, driver, 10.0).inputs
+
+    np.testing.assert_array_equal(drive(5), drive(5))
+    assert not np.array_equal(drive(5), drive(6))
+
+
+def test_bad_data_values_name_their_key(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"data\.split counts sum"):
+        tiny(tmp_path, split={"train": 1, "validation": 1, "test": 1})
+    with pytest.raises(ValueError, match=r"data\.min_steps"):
+        tiny(tmp_path, min_steps=500, max_steps=100)
+    with pytest.raises(ValueError, match=r"data\.driver\.steer_rate_deg_per_s"):
+        DriverConfig(steer_rate_deg_per_s=-1.0)
+    with pytest.raises(ValueError, match=r"data\.driver\.grip"):
+        DataConfig.from_config({"driver": {"grip": 1}})
+
+
+@pytest.fixture(scope="module")
+def stored(tmp_path_factory: pytest.TempPathFactory) -> tuple[DataConfig, Path]:
+    data = tiny(tmp_path_factory.mktemp("datasets"))
+    return data, collect(SedanParams(), data, progress=False)
+
+
+def test_split_is_disjoint_by_episode_and_reproducible(stored, tmp_path: Path) -> None:
+    _data, directory = stored
+    dataset = load(directory)
+    names = [e.name for e in dataset.train + dataset.validation + dataset.test]
+    assert len(names) == len(set(names)) == 4
+    assert (len(dataset.train), len(dataset.validation), len(dataset.test)) == (2, 1, 1)
+    again = load(collect(SedanParams(), tiny(tmp_path), progress=False))
+    assert [e.name for e in again.test] == [e.name for e in dataset.test]
+    for a, b in zip(again.episodes(), dataset.episodes(), strict=True):
+        np.testing.assert_array_equal(a.states, b.states)
+
+
+def test_normalizer_is_fitted_on_train_only_and_round_trips(stored) -> None:
+    _, directory = stored
+    dataset = load(directory)
+    train_states = np.concatenate([e.states for e in dataset.train])
+    np.testing.assert_allclose(dataset.normalizer.state_min, train_states.min(0))
+    np.testing.assert_allclose(dataset.normalizer.state_max, train_states.max(0))
+    everything = np.concatenate([e.states for e in dataset.episodes()])
+    assert not np.allclose(dataset.normalizer.state_max, everything.max(0))  # test differs
+    x = dataset.test[0].states
+    u = dataset.test[0].inputs
+    np.testing.assert_allclose(dataset.normalizer.states_inverse(dataset.normalizer.states(x)), x)
+    np.testing.assert_allclose(
+        dataset.normalizer.inputs_inverse(dataset.normalizer.inputs(u)), u, atol=1e-12
+    )
+
+
+def test_same_config_reuses_and_a_changed_one_does_not(stored) -> None:
+    data, directory = stored
+    before = (directory / "manifest.json").stat().st_mtime_ns
+    assert collect(SedanParams(), data, progress=False) == directory
+    assert (directory / "manifest.json").stat().st_mtime_ns == before
+    wet = SedanParams.from_config({"tire": {"road_friction": 0.5}})
+    assert content_key(wet, data) != content_key(SedanParams(), data)
+    assert content_key(SedanParams(), tiny(Path(data.root), seed=1)) != directory.name
+    # Where and how fast it is collected does not change the data.
+    assert content_key(SedanParams(), tiny(Path("/elsewhere"), workers=2)) == directory.name
+
+
+def test_a_truncated_episode_is_detected_and_never_used(stored, tmp_path: Path) -> None:
+    _data, directory = stored
+    copy = tmp_path / directory.name
+    copy.mkdir()
+    for path in directory.iterdir():
+        (copy / path.name).write_bytes(path.read_bytes())
+    victim = copy / "episode_0001.npz"
+    victim.write_bytes(victim.read_bytes()[:-100])
+    with pytest.raises(DatasetError, match=r"episode_0001\.npz fails its checksum") as info:
+        load(copy)
+    assert "\n" not in str(info.value)
+    with pytest.raises(DatasetError, match="checksum"):
+        collect(SedanParams(), tiny(tmp_path), progress=False)
+
+
+def test_interrupted_collection_resumes_without_redoing_finished_episodes(
+    stored, tmp_path: Path
+) -> None:
+    _data, directory = stored
+    resumed = tiny(tmp_path)
+    target = tmp_path / directory.name
+    target.mkdir()
+    manifest = json.loads((directory / "manifest.json").read_text())
+    # The state an interrupted run leaves: two episodes done, the rest missing, not complete.
+    kept = ["episode_0000", "episode_0002"]
+    manifest["episodes"] = {k: v for k, v in manifest["episodes"].items() if k in kept}
+    manifest["complete"] = False
+    manifest.pop("split"), manifest.pop("normalizer")
+    (target / "manifest.json").write_text(json.dumps(manifest))
+    for name in kept:
+        (target / f"{name}.npz").write_bytes((directory / f"{name}.npz").read_bytes())
+    stamps = {name: (target / f"{name}.npz").stat().st_mtime_ns for name in kept}
+    assert collect(SedanParams(), resumed, progress=False) == target
+    assert {n: (target / f"{n}.npz").stat().st_mtime_ns for n in kept} == stamps
+    original, finished = load(directory), load(target)
+    assert finished.manifest["split"] == original.manifest["split"]
+    for a, b in zip(finished.episodes(), original.episodes(), strict=True):
+        np.testing.assert_array_equal(a.inputs, b.inputs)
