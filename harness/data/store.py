@@ -26,7 +26,7 @@ import math
 import os
 import platform
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -306,7 +306,8 @@ def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = Tru
         lengths = data.episode_lengths()
         todo = [i for i in range(data.episodes) if f"episode_{i:04d}" not in manifest["episodes"]]
         if todo:
-            jobs = [(plant_params, data, i, lengths[i], str(directory)) for i in todo]
+            # Longest first: two workers finish together instead of one waiting on a long drive.
+            todo.sort(key=lambda i: -lengths[i])
             bar = tqdm(
                 total=sum(lengths[i] for i in todo),
                 unit="step",
@@ -316,7 +317,12 @@ def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = Tru
             )
             workers = min(data.workers, len(todo))
             with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-                for index, sha, steps, spun in pool.map(_collect_one, jobs):
+                futures = [
+                    pool.submit(_collect_one, (plant_params, data, i, lengths[i], str(directory)))
+                    for i in todo
+                ]
+                for future in as_completed(futures):
+                    index, sha, steps, spun = future.result()
                     manifest["episodes"][f"episode_{index:04d}"] = {
                         "file": f"episode_{index:04d}.npz",
                         "sha256": sha,
