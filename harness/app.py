@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import logging
 import sys
+import traceback
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from harness.metrics import update_metrics
+from harness.metrics import update_metrics, write_json_atomic
 from harness.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -38,13 +40,28 @@ def _one_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {error}".splitlines()[0]
 
 
+def _record_failure(output_dir: Path, error: BaseException) -> str:
+    """Leave the reason in the run directory, so a sweep's report can name the failed job."""
+    message = _one_line(error)
+    write_json_atomic(
+        output_dir / "error.json",
+        {"error": message, "traceback": "".join(traceback.format_exception(error))},
+    )
+    return message
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> None:
-    output_dir = Path(HydraConfig.get().runtime.output_dir)
+    hydra_cfg = HydraConfig.get()
+    output_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         run(cfg, output_dir)
-    except (ValueError, InstantiationException, RuntimeError) as error:
-        message = _one_line(error)
+    except Exception as error:
+        message = _record_failure(output_dir, error)
         log.error(message)
-        print(f"error: {message}", file=sys.stderr)
-        sys.exit(2)
+        if hydra_cfg.mode == RunMode.MULTIRUN:
+            return  # recorded in error.json; the other jobs of the sweep go on
+        if isinstance(error, (ValueError, InstantiationException, RuntimeError)):
+            print(f"error: {message}", file=sys.stderr)
+            sys.exit(2)
+        raise
