@@ -26,8 +26,11 @@ test: setup  ## lint, then the test suite (slow tests excluded)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
 
-bench: setup  ## benchmarks, printed as tables
+bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxpy)
+	$(BIN)/pip install --quiet -e '.[dev,bench]'
 	$(BIN)/python -m bench.plant_throughput
+	$(BIN)/python -m bench.collect_throughput
+	$(BIN)/python -m bench.mpc_solve_time
 
 format: setup  ## format and autofix
 	$(BIN)/ruff format .

@@ -54,7 +54,10 @@ def main() -> None:
     base = rows[1][2] / rows[1][3]
     for name, episodes, frames, wall in rows:
         rate = frames / wall
-        print(f"| {name} | {episodes} | {frames:,} | {wall:.1f} | {rate:,.0f} | {rate / base:.2f}x |")
+        print(
+            f"| {name} | {episodes} | {frames:,} | {wall:.1f} | {rate:,.0f} "
+            f"| {rate / base:.2f}x |"
+        )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,10 @@
-"""Controllers that act on the plant: the Koopman MPC (DE-MPC) solved with PIQP (issue: DE-MPC).
+"""Controllers that act on the plant: the Koopman MPC (DE-MPC) solved with PIQP.
 
-Nothing lives here yet: it needs a learned lifted-linear model first.
+A controller has two members: ``reset(...)`` before a run and ``act(x, t) -> u`` every control
+period (physical units in and out).
 """
+
+from controllers.condensed_qp import CondensedQP, QPSolution
+from controllers.de_mpc import DEMPC, KoopmanModel
+
+__all__ = ["DEMPC", "CondensedQP", "KoopmanModel", "QPSolution"]

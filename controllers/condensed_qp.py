@@ -1,0 +1,394 @@
+"""The condensed DE-MPC quadratic program (paper eq. 19-20) and its three solve paths.
+
+Decision variables x = [ΔV; ε]: the input increments over the control horizon (Nc·m, in
+normalized input units; ΔV = 0 from Nc to Np) and one slack ε. With y_i = C z_{t+i},
+
+    Y = Φz z_t + Φv v_{t-1} + Θ ΔV                                          (eq. 18)
+    J = ||Y - Y_ref||²_Q + ||ΔV||²_R + ρ ε²  =  ½ xᵀPx + cᵀx + eᵀQe          (eq. 20)
+
+with P = 2·diag(ΘᵀQΘ + R, ρ), c = 2[ΘᵀQe; 0], e = Φz z + Φv v - Y_ref. Constraints, as rows
+Gx <= b of this module (scaled so every rate row reads in fractions of its limit):
+
+    ±Δv_k / Δv_max - ε <= 1            increments, softened by ε (paper: 1_m ε, see below)
+    ±(v_{t-1} + Σ_{j<=k} Δv_j) <= ±v_max/min   hard input bounds
+    -ε <= 0
+
+The paper adds ε·1_m to the increment bounds. Its inputs have mixed units (deg, throttle, MPa),
+so one unit of ε means very different things per channel; here ε is relative to each channel's
+own limit (|Δv_k| <= Δv_max·(1 + ε)), so ρ prices "exceed every rate limit by 100 %" the same
+for steering and pedal. ε = 0 exactly when no rate limit binds.
+
+Everything that does not depend on (z_t, v_{t-1}, Y_ref) is built once per model. Per step,
+:meth:`CondensedQP.solve` tries, fastest first, each path returning the QP's exact optimum:
+
+1. the unconstrained optimum x_u = -P⁻¹c (one matrix-vector product); it is the QP's solution
+   whenever it satisfies every row;
+2. the last step's active set, hot-started: the QP's dual min_{λ>=0} ½λᵀKλ - rᵀλ with
+   K = GP⁻¹Gᵀ (built once) and r = Gx_u - b is solved by a Lawson-Hanson active-set method
+   started from the rows that were active one step ago; it returns only a KKT point
+   (λ > 0 on its rows, every row satisfied to ``tol``), i.e. the optimum;
+3. PIQP (dense), on the same problem written in absolute inputs V (box bounds for V, the
+   increment rows as general rows: the fastest layout measured), whenever 2 gives up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import piqp
+from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg.lapack import dpotrf, dpotrs, dtrtrs
+
+PATHS = ("unconstrained", "active_set", "piqp", "failed")
+
+
+@dataclass(frozen=True)
+class QPSolution:
+    """One solve: the increments, the slack, how it was found and whether to trust it."""
+
+    dv: np.ndarray  # (Nc, m) optimal increments, normalized input units
+    slack: float  # ε, relative to the rate limits
+    path: str  # one of PATHS
+    iterations: int  # active-set factorizations or PIQP iterations (0 for unconstrained)
+    status: str  # "solved", or PIQP's status name when it did not solve
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "solved"
+
+
+class CondensedQP:
+    """Prediction matrices, Hessian and dual operator of one model, and the per-step solve.
+
+    Args:
+        A, B, C: the lifted model z⁺ = Az + Bv, y = Cz (normalized units).
+        Np, Nc: prediction and control horizon (Nc <= Np).
+        Q: (n, n) output weight; R: (m, m) increment weight; rho: slack weight.
+        v_min, v_max: (m,) hard input bounds; dv_max: (m,) increment limits (> 0).
+        tol: feasibility / optimality tolerance of every path.
+        max_iter: PIQP iteration limit, the time limit of a solve.
+        active_set: try the hot-started active set before PIQP.
+        active_set_max_iter: factorizations before the active set hands over to PIQP; 100
+            bounds a solve at about 4 ms + PIQP, inside the 10 ms period.
+    """
+
+    def __init__(
+        self,
+        A: np.ndarray,  # noqa: N803
+        B: np.ndarray,  # noqa: N803
+        C: np.ndarray,  # noqa: N803
+        *,
+        Np: int,  # noqa: N803
+        Nc: int,  # noqa: N803
+        Q: np.ndarray,  # noqa: N803
+        R: np.ndarray,  # noqa: N803
+        rho: float,
+        v_min: np.ndarray,
+        v_max: np.ndarray,
+        dv_max: np.ndarray,
+        tol: float = 1e-6,
+        max_iter: int = 100,
+        active_set: bool = True,
+        active_set_max_iter: int = 100,
+    ) -> None:
+        self.n, self.N = C.shape
+        self.m = B.shape[1]
+        self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
+        self.active_set, self.active_set_max_iter = active_set, active_set_max_iter
+        self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
+        self.dv_max = np.asarray(dv_max, float)
+        self._build_prediction(A, B, C)
+        self._build_cost(Q, R)
+        self._build_constraints()
+        self._build_piqp(max_iter)
+        self._guess = np.zeros(self.rows, dtype=bool)
+
+    # ---- built once per model -------------------------------------------------------------
+
+    def _build_prediction(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> None:  # noqa: N803
+        """Φz, Φv, Θ of eq. (18) from the step responses S_l = Σ_{q<l} A^q B."""
+        n, m, N, Np, Nc = self.n, self.m, self.N, self.Np, self.Nc  # noqa: N806
+        power = np.eye(N)
+        step = np.zeros((N, m))
+        phi_z, step_out = [], [np.zeros((n, m))]  # C S_0 = 0
+        for _ in range(Np):
+            step = step + power @ B
+            power = A @ power
+            phi_z.append(C @ power)
+            step_out.append(C @ step)
+        self.phi_z = np.vstack(phi_z)  # (n Np, N): y_i from z_t
+        self.phi_v = np.vstack(step_out[1:])  # (n Np, m): y_i from holding v_{t-1}
+        theta = np.zeros((Np, n, Nc, m))
+        for i in range(1, Np + 1):  # y_i depends on Δv_j for j < i through C S_{i-j}
+            for j in range(min(i, Nc)):
+                theta[i - 1, :, j, :] = step_out[i - j]
+        self.theta = theta.reshape(n * Np, m * Nc)
+
+    def _build_cost(self, Q: np.ndarray, R: np.ndarray) -> None:  # noqa: N803
+        n, Np, Nc, M = self.n, self.Np, self.Nc, self.m * self.Nc  # noqa: N806
+        self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
+        q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, n, M)).reshape(n * Np, M)
+        self._theta_q = np.ascontiguousarray(q_theta.T)  # ΘᵀQ, (M, n Np)
+        hessian = self.theta.T @ q_theta + np.kron(np.eye(Nc), self._R)
+        self.P = np.zeros((M + 1, M + 1))
+        self.P[:M, :M] = 2 * hessian
+        self.P[M, M] = 2 * self.rho
+        self.P = np.asfortranarray((self.P + self.P.T) / 2)
+        # Unconstrained optimum x_u = -P⁻¹c = F [z; v; Y_ref] (ε_u = 0): one product per step.
+        gain = cho_solve(cho_factor(self.P[:M, :M]), 2 * q_theta.T)  # P⁻¹·2ΘᵀQ
+        self._x_u = np.hstack([-gain @ self.phi_z, -gain @ self.phi_v, gain])
+
+    def _build_constraints(self) -> None:
+        """Rows G x <= b (b moves with v_{t-1}), the dual operator K = G P⁻¹ Gᵀ and P⁻¹Gᵀ."""
+        m, Nc, M = self.m, self.Nc, self.m * self.Nc  # noqa: N806
+        inv_rate = np.tile(1.0 / self.dv_max, Nc)
+        cumulative = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(m))
+        G = np.zeros((4 * M + 1, M + 1))  # noqa: N806
+        G[:M, :M], G[:M, M] = np.diag(inv_rate), -1.0
+        G[M : 2 * M, :M], G[M : 2 * M, M] = -np.diag(inv_rate), -1.0
+        G[2 * M : 3 * M, :M] = cumulative
+        G[3 * M : 4 * M, :M] = -cumulative
+        G[4 * M, M] = -1.0
+        self.G, self.rows, self._M = G, G.shape[0], M
+        self._v_min_all, self._v_max_all = np.tile(self.v_min, Nc), np.tile(self.v_max, Nc)
+        self._inv_rate, self._cumulative = inv_rate, cumulative
+        p_inv = cho_solve(cho_factor(self.P), np.eye(M + 1))
+        self._Zt = np.ascontiguousarray((p_inv @ G.T).T)  # rows of P⁻¹Gᵀ, one per constraint
+        self._K = np.ascontiguousarray(G @ p_inv @ G.T)
+        # A whisper of regularization keeps K_WW factorable when active rows are dependent
+        # (more rows than unknowns); the result is checked against tol all the same.
+        self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
+
+    def _build_piqp(self, max_iter: int) -> None:
+        """The same QP in x_V = [V; ε] with ΔV = D V - E v_{t-1}: V bounds become box bounds."""
+        m, Nc, M = self.m, self.Nc, self.m * self.Nc  # noqa: N806
+        difference = np.eye(M) - np.eye(M, k=-m)
+        T = np.zeros((M + 1, M + 1))  # noqa: N806
+        T[:M, :M], T[M, M] = difference, 1.0
+        self._T = T
+        self._P_V = np.asfortranarray(T.T @ self.P @ T)
+        rate = self._inv_rate[:, None] * difference
+        ones = np.ones((M, 1))
+        # Upper rows  ΔV/Δv_max - ε <= 1, lower rows  ΔV/Δv_max + ε >= -1 (one-sided each).
+        self._G_V = np.asfortranarray(
+            np.vstack([np.hstack([rate, -ones]), np.hstack([rate, ones])])
+        )
+        self._piqp_x_l = np.concatenate([np.tile(self.v_min, Nc), [0.0]])
+        self._piqp_x_u = np.concatenate([np.tile(self.v_max, Nc), [np.inf]])
+        self._piqp_h_l = np.concatenate([np.full(M, -np.inf), -np.ones(M)])
+        self._piqp_h_u = np.concatenate([np.ones(M), np.full(M, np.inf)])
+        solver = piqp.DenseSolver()
+        settings = solver.settings
+        settings.eps_abs = self.tol
+        settings.eps_duality_gap_abs = self.tol
+        settings.max_iter = max_iter
+        settings.preconditioner_reuse_on_update = True  # P and G never change
+        self._piqp = solver
+        self._piqp_ready = False
+
+    # ---- per step ---------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget the previous active set (a new run starts cold)."""
+        self._guess[:] = False
+
+    def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
+        """x_u = [ΔV; 0], the minimizer of J without constraints."""
+        dv = self._x_u @ np.concatenate([z, v_prev, y_ref])
+        return np.append(dv, 0.0)
+
+    def residual(self, x: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
+        """G x - b: positive entries are violated rows."""
+        M = self._M  # noqa: N806
+        dv, eps = x[:M], x[M]
+        scaled = dv * self._inv_rate
+        v = (dv.reshape(self.Nc, self.m).cumsum(axis=0) + v_prev).ravel()
+        out = np.empty(self.rows)
+        out[:M] = scaled - (eps + 1.0)
+        out[M : 2 * M] = -scaled - (eps + 1.0)
+        out[2 * M : 3 * M] = v - self._v_max_all
+        out[3 * M : 4 * M] = self._v_min_all - v
+        out[4 * M] = -eps
+        return out
+
+    def solve(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
+        """The QP's optimum for lifted state z, previous input v_prev, references y_ref (n Np,)."""
+        x_u = self.unconstrained(z, v_prev, y_ref)
+        r = self.residual(x_u, v_prev)
+        if not (r > self.tol).any():
+            self._guess[:] = False
+            return self._solution(x_u, "unconstrained", 0, "solved")
+        if self.active_set:
+            found = self._hot_active_set(x_u, r, v_prev)
+            if found is not None:
+                x, rows, iterations = found
+                self._guess[:] = False
+                self._guess[rows] = True
+                return self._solution(x, "active_set", iterations, "solved")
+        solution = self.solve_piqp(z, v_prev, y_ref)
+        if solution.ok:
+            x = np.append(solution.dv.ravel(), solution.slack)
+            self._guess = self.residual(x, v_prev) > -10 * self.tol
+        return solution
+
+    def _solution(self, x: np.ndarray, path: str, iterations: int, status: str) -> QPSolution:
+        M = self.m * self.Nc  # noqa: N806
+        return QPSolution(x[:M].reshape(self.Nc, self.m), float(x[M]), path, iterations, status)
+
+    def _hot_active_set(
+        self, x_u: np.ndarray, r: np.ndarray, v_prev: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """Lawson-Hanson on the dual min_{λ>=0} ½λᵀKλ - rᵀλ, started from the last active set.
+
+        Rows enter one at a time (the most violated; the factor of K_WW grows by one row) and
+        leave when their multiplier reaches zero (refactored). Returns (x, rows, factorizations)
+        at a KKT point, or None when it is degenerate or takes longer than PIQP would.
+        """
+        tol, limit = self.tol, self.active_set_max_iter
+        rows = np.flatnonzero(self._guess)
+        factor, lam, iterations = None, np.zeros(0), 0
+        while rows.size:  # warm start: keep the guessed rows whose multipliers are positive
+            factor = self._factor(rows)
+            iterations += 1
+            if factor is None:
+                rows = rows[:0]
+                break
+            lam = dpotrs(factor, r[rows], lower=1)[0]
+            if (lam > 0).all():
+                break
+            rows = rows[lam > 0]
+        while iterations < limit:
+            x = x_u - lam @ self._Zt[rows] if rows.size else x_u
+            s = self.residual(x, v_prev)
+            if rows.size and np.abs(s[rows]).max() > tol:
+                return None  # the regularization shows: leave it to PIQP
+            s[rows] = -np.inf
+            worst = int(np.argmax(s))
+            if s[worst] <= tol:
+                return x, rows, iterations
+            factor = self._extend(factor, rows, worst)
+            if factor is None:
+                return None
+            rows, current = np.append(rows, worst), np.append(lam, 0.0)
+            while True:  # move towards the block solution, dropping rows whose λ reaches 0
+                iterations += 1
+                mu = dpotrs(factor, r[rows], lower=1)[0]
+                if (mu > 0).all():
+                    lam = mu
+                    break
+                if (mu[-1] <= 0 and current[-1] == 0) or iterations >= limit:
+                    return None  # the most violated row cannot enter: degenerate
+                blocking = mu <= 0
+                ratios = current[blocking] / (current[blocking] - mu[blocking])
+                current = current + ratios.min() * (mu - current)
+                keep = current > 0
+                keep[np.flatnonzero(blocking)[np.argmin(ratios)]] = False
+                rows, current = rows[keep], current[keep]
+                if rows.size == 0:
+                    lam = current
+                    break
+                factor = self._factor(rows)
+                if factor is None:
+                    return None
+        return None
+
+    def _factor(self, rows: np.ndarray) -> np.ndarray | None:
+        """Lower Cholesky factor of K[rows, rows] + δI; None when not numerically definite."""
+        block = self._K.take(rows, 0).take(rows, 1)
+        block.flat[:: rows.size + 1] += self._delta
+        factor, info = dpotrf(block, lower=1)
+        return factor if info == 0 else None
+
+    def _extend(self, factor: np.ndarray | None, rows: np.ndarray, new: int) -> np.ndarray | None:
+        """The factor of K_WW + δI with row ``new`` appended, in O(|W|²)."""
+        k = rows.size
+        diagonal = self._K[new, new] + self._delta
+        extended = np.zeros((k + 1, k + 1), order="F")
+        if k:
+            column = dtrtrs(factor, self._K[new].take(rows), lower=1)[0]
+            diagonal -= column @ column
+            extended[:k, :k] = factor
+            extended[k, :k] = column
+        if diagonal <= self._delta:
+            return None
+        extended[k, k] = np.sqrt(diagonal)
+        return extended
+
+    def solve_piqp(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
+        """PIQP alone (dense), in absolute inputs: the reference path and the last resort."""
+        M = self.m * self.Nc  # noqa: N806
+        e = self.phi_z @ z + self.phi_v @ v_prev - y_ref
+        c = np.zeros(M + 1)
+        c[:M] = 2 * self._theta_q @ e
+        # x = T x_V + t0 with t0 = [-E v_prev; 0]: c_V = Tᵀ (c + P t0).
+        c_v = self._T.T @ (c - self.P[:, : self.m] @ v_prev)
+        shift = np.zeros(M)
+        shift[: self.m] = v_prev * self._inv_rate[: self.m]
+        h_l = self._piqp_h_l.copy()
+        h_u = self._piqp_h_u.copy()
+        h_u[:M] += shift
+        h_l[M:] += shift
+        solver = self._piqp
+        if not self._piqp_ready:
+            _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
+            solver.setup(
+                P=self._P_V,
+                c=c_v,
+                G=self._G_V,
+                h_l=h_l,
+                h_u=h_u,
+                x_l=self._piqp_x_l,
+                x_u=self._piqp_x_u,
+            )
+            self._piqp_ready = True
+        else:
+            _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
+            solver.update(c=c_v, h_l=h_l, h_u=h_u)
+        status = solver.solve()
+        iterations = int(solver.result.info.iter)
+        if status != piqp.PIQP_SOLVED:
+            zeros = np.zeros((self.Nc, self.m))
+            return QPSolution(zeros, 0.0, "failed", iterations, status.name)
+        x = self._T @ solver.result.x
+        x[: self.m] -= v_prev
+        return self._solution(x, "piqp", iterations, "solved")
+
+    def predict(self, z: np.ndarray, v_prev: np.ndarray, dv: np.ndarray) -> np.ndarray:
+        """(Np, n) predicted outputs y_{t+1..t+Np} under the increments dv (Nc, m)."""
+        y = self.phi_z @ z + self.phi_v @ v_prev + self.theta @ np.ravel(dv)
+        return y.reshape(self.Np, self.n)
+
+    def cost(
+        self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray, dv: np.ndarray, slack: float
+    ) -> float:
+        """J of eq. (20), constant included: ||Y - Y_ref||²_Q + ||ΔV||²_R + ρε²."""
+        error = (self.predict(z, v_prev, dv).ravel() - y_ref).reshape(self.Np, self.n)
+        dv = np.reshape(dv, (self.Nc, self.m))
+        tracking = np.einsum("ia,ab,ib->", error, self.Q, error)
+        return float(tracking + np.einsum("ia,ab,ib->", dv, self._R, dv) + self.rho * slack**2)
+
+
+def _check_piqp_shapes(
+    P: np.ndarray,  # noqa: N803
+    c: np.ndarray,
+    G: np.ndarray,  # noqa: N803
+    h_l: np.ndarray,
+    h_u: np.ndarray,
+    x_l: np.ndarray,
+    x_u: np.ndarray,
+) -> None:
+    """PIQP 0.7 warns and then segfaults in solve() on mismatched sizes: refuse them here."""
+    n = c.shape[0]
+    expected = {
+        "P": (P.shape, (n, n)),
+        "G": (G.shape, (h_l.shape[0], n)),
+        "h_u": (h_u.shape, h_l.shape),
+        "x_l": (x_l.shape, (n,)),
+        "x_u": (x_u.shape, (n,)),
+    }
+    for name, (got, want) in expected.items():
+        if got != want:
+            raise RuntimeError(f"PIQP problem data {name} has shape {got}, expected {want}")
+    if not (P.flags.f_contiguous and G.flags.f_contiguous):
+        raise RuntimeError("PIQP dense problem matrices must be Fortran-ordered")

@@ -1,0 +1,178 @@
+"""Closed-loop reference tracking (paper section VI): a controller drives the plant at 10 ms.
+
+:func:`track` runs one reference and returns its metrics (SI):
+
+- ``rmse``: {vx, vy, yaw_rate}, root-mean-square of state - reference over the run;
+- ``solve_time_ms``: {median, p99, max} of the controller's whole ``act`` call (lift, QP, input
+  recovery): what must fit in the control period;
+- ``deadline_misses``: steps whose ``act`` took longer than the control period;
+- ``solver_failures``: steps where the controller fell back to its previous plan;
+- ``solve_paths``: how many steps each solve path answered (DE-MPC: unconstrained,
+  active_set, piqp, failed).
+
+Everything is recorded: the rollout (states, inputs, pose) under ``name``, and per state one
+plot ``{name}/tracking/<state>`` with the reference, the actual state and the model's prediction
+``Np`` steps ahead drawn at the time it predicts; the whole predicted horizon at every step is
+logged columnar under ``{name}/horizon/<state>`` ((T, Np): column i is the prediction i + 1
+steps ahead).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from harness.plant import INPUT_NAMES, STATE_NAMES
+from harness.recorder import Recorder
+from harness.rollout import Trajectory
+
+
+class TrackingController(Protocol):
+    def reset(self, reference: np.ndarray) -> None: ...
+
+    def act(self, x: np.ndarray, t: float) -> np.ndarray: ...
+
+
+class TrackingPlant(Protocol):
+    dt: float
+
+    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray: ...
+
+    def step(self, u: np.ndarray) -> np.ndarray: ...
+
+    @property
+    def pose(self) -> np.ndarray: ...
+
+
+@dataclass
+class TrackingTrajectory(Trajectory):
+    """A rollout plus what tracking adds: the reference, predictions and solve times."""
+
+    reference: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    predicted: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))  # (T, Np, 3)
+    solve_time_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def track(
+    plant: TrackingPlant,
+    controller: TrackingController,
+    reference: np.ndarray,
+    *,
+    name: str,
+    recorder: Recorder,
+    figure_path: Path | None = None,
+) -> tuple[dict[str, Any], TrackingTrajectory]:
+    """Track ``reference`` ((T, 3) states at plant.dt) from rest-or-rolling at its first speed."""
+    reference = np.asarray(reference, dtype=float)
+    if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
+        raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
+    steps = len(reference)
+    states, inputs, poses = np.empty((steps, 3)), np.zeros((steps, 2)), np.empty((steps, 3))
+    solve_time = np.full(steps, np.nan)
+    horizon = getattr(controller, "Np", 0)
+    predicted = np.full((steps, horizon, 3), np.nan)
+    paths: Counter[str] = Counter()
+    x = plant.reset(speed_mps=float(reference[0, 0]))
+    controller.reset(reference)
+    for k in range(steps - 1):
+        states[k], poses[k] = x, plant.pose
+        start = time.perf_counter()
+        u = controller.act(x, k * plant.dt)
+        solve_time[k] = time.perf_counter() - start
+        inputs[k] = u
+        if horizon:
+            predicted[k] = controller.predicted_states
+        last = getattr(controller, "last", None)
+        paths[getattr(last, "path", "n/a")] += 1
+        x = plant.step(u)
+        if not np.all(np.isfinite(x)):
+            raise RuntimeError(f"plant state became non-finite at t = {k * plant.dt:.2f} s")
+    states[-1], poses[-1], inputs[-1] = x, plant.pose, inputs[-2]
+    time_s = np.arange(steps) * plant.dt
+    run = TrackingTrajectory(
+        time_s, states, inputs, poses, reference, predicted, solve_time[:-1].copy()
+    )
+    metrics = tracking_metrics(run, plant.dt, getattr(controller, "solver_failures", 0))
+    metrics["solve_paths"] = dict(paths)
+    _record(recorder, name, run, plant.dt)
+    if figure_path is not None:
+        plot_tracking({name: run}, figure_path)
+    return metrics, run
+
+
+def tracking_metrics(run: TrackingTrajectory, dt: float, solver_failures: int) -> dict[str, Any]:
+    """RMSE per state (SI), solve-time statistics (ms), deadline misses and failures."""
+    error = run.states - run.reference
+    rmse = np.sqrt(np.mean(error**2, axis=0))
+    solve_ms = run.solve_time_s * 1e3
+    return {
+        "rmse": dict(zip(STATE_NAMES, rmse.tolist(), strict=True)),
+        "solve_time_ms": {
+            "median": float(np.median(solve_ms)),
+            "p99": float(np.percentile(solve_ms, 99)),
+            "max": float(np.max(solve_ms)),
+        },
+        "deadline_misses": int(np.sum(run.solve_time_s > dt)),
+        "solver_failures": int(solver_failures),
+        "steps": len(run.solve_time_s),
+    }
+
+
+def _record(recorder: Recorder, name: str, run: TrackingTrajectory, dt: float) -> None:
+    poses = run.poses if np.all(np.isfinite(run.poses)) else None
+    solve_ms = np.append(run.solve_time_s, np.nan) * 1e3
+    recorder.rollout(
+        name,
+        run.time_s,
+        run.states,
+        run.inputs,
+        poses,
+        extra={"solve_time_ms": solve_ms, "error": run.states - run.reference},
+    )
+    horizon = run.predicted.shape[1]
+    for i, state in enumerate(STATE_NAMES):
+        path = f"{name}/tracking/{state}"
+        recorder.series(
+            path, run.time_s, {"reference": run.reference[:, i], "actual": run.states[:, i]}
+        )
+        if horizon:
+            # The prediction Np steps ahead, drawn at the time it is a prediction of.
+            ahead = run.time_s + horizon * dt
+            recorder.series(path, ahead, {f"predicted_{horizon}_ahead": run.predicted[:, -1, i]})
+            recorder.series(f"{name}/horizon/{state}", run.time_s, {"ahead": run.predicted[..., i]})
+
+
+_UNITS = {"vx": "m/s", "vy": "m/s", "yaw_rate": "rad/s", "steer_wheel_deg": "deg"}
+
+
+def plot_tracking(runs: Mapping[str, TrackingTrajectory], path: Path) -> None:
+    """The paper's tracking figure: reference vs actual for vx, vy, r; then the inputs."""
+    fig, axes = plt.subplots(5, 1, figsize=(8, 11), sharex=True)
+    first = next(iter(runs.values()))
+    for i, state in enumerate(STATE_NAMES):
+        axes[i].plot(first.time_s, first.reference[:, i], "k--", lw=1.2, label="reference")
+        for label, run in runs.items():
+            axes[i].plot(run.time_s, run.states[:, i], lw=1.0, label=label)
+        axes[i].set_ylabel(f"{state} [{_UNITS[state]}]")
+    for j, name in enumerate(INPUT_NAMES):
+        ax = axes[3 + j]
+        for label, run in runs.items():
+            ax.plot(run.time_s, run.inputs[:, j], lw=1.0, label=label)
+        ax.set_ylabel("pedal [throttle / -MPa]" if name == "pedal" else f"{name} [deg]")
+    axes[0].legend(loc="best", fontsize=8)
+    axes[-1].set_xlabel("time [s]")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,279 @@
+"""DE-MPC: the QP's solution is the optimum, every bound holds, failures fall back, settings fail
+in one line that names their key, the configs build, and the loop closes on the real plant."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import piqp
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from controllers import DEMPC, CondensedQP
+from controllers.lifted_linear import (
+    LiftedLinearModel,
+    ModelPlant,
+    feasible_reference,
+    fit_lifted_linear,
+)
+from controllers.lifted_linear import toy_linear_model as linear_model
+from harness.data import Episode
+from harness.data.store import DataConfig, drive_episode
+from harness.paths import CONF_DIR
+from harness.plant import Sedan
+from harness.recorder import Recorder
+from harness.references import from_episode
+from harness.tracking import track
+
+TOL = 1e-6
+
+
+def make_qp(model: LiftedLinearModel, **overrides: object) -> CondensedQP:
+    settings = {
+        "Np": 20,
+        "Nc": 10,
+        "Q": 1000 * np.eye(3),
+        "R": 5 * np.eye(2),
+        "rho": 10.0,
+        "v_min": np.array([0.2, 0.1]),
+        "v_max": np.array([0.8, 0.9]),
+        "dv_max": np.array([0.0025, 0.01]),
+    }
+    settings.update(overrides)
+    return CondensedQP(model.A_, model.B_, model.C_, **settings)
+
+
+def problem(model: LiftedLinearModel, target: np.ndarray, np_: int = 20):
+    """(z, v_prev, y_ref): at rest, asked to reach ``target`` (normalized) over the horizon."""
+    z = model.lift(np.array([20.0, 0.0, 0.0]))
+    return z, np.full(2, 0.5), np.tile(target, np_)
+
+
+def simulated_outputs(model: LiftedLinearModel, z, v_prev, dv, np_: int) -> np.ndarray:
+    """y_1..y_Np by stepping the model: an independent check of the prediction matrices."""
+    v, outputs = v_prev.copy(), []
+    for i in range(np_):
+        if i < len(dv):
+            v = v + dv[i]
+        z = model.A_ @ z + model.B_ @ v
+        outputs.append(model.C_ @ z)
+    return np.array(outputs)
+
+
+def bounds_hold(qp: CondensedQP, v_prev: np.ndarray, dv: np.ndarray, slack: float) -> None:
+    v = v_prev + np.cumsum(dv, axis=0)
+    assert np.all(v >= qp.v_min - TOL) and np.all(v <= qp.v_max + TOL)
+    assert np.all(np.abs(dv) <= qp.dv_max * (1 + slack) + TOL)
+    assert slack >= -TOL
+
+
+def test_prediction_matrices_reproduce_the_model_step_by_step() -> None:
+    model = linear_model()
+    qp = make_qp(model)
+    z, v_prev, _ = problem(model, np.full(3, 0.5))
+    dv = np.random.default_rng(0).normal(scale=0.003, size=(10, 2))
+    np.testing.assert_allclose(
+        qp.predict(z, v_prev, dv), simulated_outputs(model, z, v_prev, dv, 20), atol=1e-12
+    )
+
+
+def test_without_active_constraints_the_qp_is_the_unconstrained_optimum() -> None:
+    model = linear_model()
+    qp = make_qp(model, dv_max=np.array([0.02, 0.08]))
+    z, v_prev, y_ref = problem(model, np.array([0.501, 0.501, 0.501]))
+    solution = qp.solve(z, v_prev, y_ref)
+    assert solution.path == "unconstrained" and solution.slack == 0.0
+    # The closed form, built independently from step responses of the model.
+    theta = np.column_stack(
+        [
+            (
+                simulated_outputs(model, z, v_prev, np.eye(20)[j].reshape(10, 2), 20)
+                - simulated_outputs(model, z, v_prev, np.zeros((10, 2)), 20)
+            ).ravel()
+            for j in range(20)
+        ]
+    )
+    error = simulated_outputs(model, z, v_prev, np.zeros((10, 2)), 20).ravel() - y_ref
+    hessian = 1000 * theta.T @ theta + 5 * np.eye(20)
+    closed_form = -np.linalg.solve(hessian, 1000 * theta.T @ error)
+    np.testing.assert_allclose(solution.dv.ravel(), closed_form, rtol=1e-8, atol=1e-12)
+    by_piqp = qp.solve_piqp(z, v_prev, y_ref)
+    assert by_piqp.path == "piqp"
+    np.testing.assert_allclose(by_piqp.dv.ravel(), closed_form, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("target", "input_box"),
+    [
+        ([0.9, 0.8, 0.2], (0.2, 0.8)),  # rate limits bind (and ε > 0)
+        ([0.1, 0.2, 0.9], (0.2, 0.8)),
+        ([0.9, 0.8, 0.2], (0.49, 0.51)),  # and the input bounds too
+        ([0.1, 0.2, 0.9], (0.495, 0.52)),
+    ],
+)
+def test_with_active_constraints_every_bound_holds_and_both_solvers_agree(
+    target: list[float], input_box: tuple[float, float]
+) -> None:
+    model = linear_model()
+    qp = make_qp(model, v_min=np.full(2, input_box[0]), v_max=np.full(2, input_box[1]))
+    z, v_prev, y_ref = problem(model, np.array(target))
+    assert (qp.residual(qp.unconstrained(z, v_prev, y_ref), v_prev) > TOL).any()
+    hot = qp.solve(z, v_prev, y_ref)
+    cold = qp.solve_piqp(z, v_prev, y_ref)
+    assert hot.ok and cold.ok and hot.path == "active_set"
+    for solution in (hot, cold):
+        bounds_hold(qp, v_prev, solution.dv, solution.slack)
+    active = qp.residual(np.append(hot.dv.ravel(), hot.slack), v_prev) > -TOL
+    rate_rows, input_rows = active[: 2 * qp._M], active[2 * qp._M : 4 * qp._M]
+    assert rate_rows.any() and (input_rows.any() or input_box[1] - input_box[0] > 0.1)
+    costs = [qp.cost(z, v_prev, y_ref, s.dv, s.slack) for s in (hot, cold)]
+    assert costs[0] == pytest.approx(costs[1], rel=1e-5)
+    assert costs[0] <= costs[1] * (1 + 1e-9)  # the active set is exact, PIQP within 1e-6
+
+
+def test_the_hot_start_finds_the_same_optimum_from_any_previous_active_set() -> None:
+    model = linear_model()
+    qp = make_qp(model)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        z, v_prev, y_ref = problem(model, rng.uniform(0.1, 0.9, 3))
+        qp._guess = rng.random(qp.rows) < 0.1  # any guess, even a poor one
+        hot, cold = qp.solve(z, v_prev, y_ref), qp.solve_piqp(z, v_prev, y_ref)
+        bounds_hold(qp, v_prev, hot.dv, hot.slack)
+        assert qp.cost(z, v_prev, y_ref, hot.dv, hot.slack) == pytest.approx(
+            qp.cost(z, v_prev, y_ref, cold.dv, cold.slack), rel=1e-5
+        )
+
+
+def test_slack_is_zero_unless_a_rate_limit_binds() -> None:
+    model = linear_model()
+    z, v_prev, y_ref = problem(model, np.array([0.9, 0.8, 0.2]))
+    loose = make_qp(model, dv_max=np.array([10.0, 10.0]))  # only the input bounds can bind
+    solution = loose.solve(z, v_prev, y_ref)
+    assert solution.path == "active_set" and solution.slack <= TOL
+    tight = make_qp(model)
+    solution = tight.solve(z, v_prev, y_ref)
+    assert solution.slack > 1e-3
+    assert np.isclose(np.abs(solution.dv) / tight.dv_max, 1 + solution.slack).any()
+
+
+def test_exact_model_tracks_a_feasible_reference() -> None:
+    model = linear_model()
+    reference = feasible_reference(model)
+    plant = ModelPlant(model, x0=reference[0])
+    for horizons in ({"Np": 10, "Nc": 7}, {"Np": 60, "Nc": 50}):
+        metrics, _ = track(
+            plant, DEMPC(model, **horizons), reference, name="exact", recorder=Recorder()
+        )
+        assert metrics["rmse"]["vx"] < 0.05  # of a 40 m/s range
+        assert metrics["rmse"]["vy"] < 1e-3 and metrics["rmse"]["yaw_rate"] < 1e-3
+        assert metrics["solver_failures"] == 0
+
+
+def test_a_failed_solve_falls_back_to_the_previous_plan_and_is_counted(monkeypatch, caplog):
+    model = linear_model()
+    controller = DEMPC(model, active_set=False)
+    target = np.tile([30.0, 1.0, 0.5], (50, 1))  # far away: constraints active, PIQP solves
+    controller.reset(np.vstack([[20.0, 0.0, 0.0], target]))
+    x = np.array([20.0, 0.0, 0.0])
+    controller.act(x, 0.0)
+    assert controller.last.path == "piqp"
+    plan = controller._plan.copy()
+
+    class FailingSolver:
+        settings = controller.qp._piqp.settings
+        result = controller.qp._piqp.result
+
+        def update(self, **_: object) -> None: ...
+
+        def solve(self) -> piqp.Status:
+            return piqp.PIQP_MAX_ITER_REACHED
+
+    monkeypatch.setattr(controller.qp, "_piqp", FailingSolver())
+    with caplog.at_level(logging.WARNING):
+        u1 = controller.act(x, 0.01)
+        u2 = controller.act(x, 0.02)
+    assert controller.solver_failures == 2 and controller.last.path == "failed"
+    np.testing.assert_allclose(u1, model.normalizer_.inputs_inverse(plan[1]))
+    np.testing.assert_allclose(u2, model.normalizer_.inputs_inverse(plan[2]))
+    assert "previous plan" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"Np": 10, "Nc": 60}, "controller.Nc (60) must be <= controller.Np (10)"),
+        ({"Q": [1.0, -1.0, 1.0]}, "controller.Q must be positive definite"),
+        ({"R": 0.0}, "controller.R must be positive definite"),
+        ({"Q": [[1, 2, 0], [0, 1, 0], [0, 0, 1]]}, "controller.Q must be symmetric"),
+        ({"rho": 0.0}, "controller.rho must be > 0"),
+        ({"pedal_min": 0.1, "pedal_max": -1.0}, "controller.pedal_min (0.1) must be <"),
+        ({"steer_wheel_min_deg": 10, "steer_wheel_max_deg": -10}, "controller.steer_wheel_min"),
+        ({"steer_wheel_increment_deg": -1}, "controller.steer_wheel_increment_deg must be > 0"),
+        ({"Nc": 0}, "controller.Nc must be a positive integer"),
+    ],
+)
+def test_a_wrong_setting_names_its_key_in_one_line(settings: dict, message: str) -> None:
+    with pytest.raises(ValueError) as info:
+        DEMPC(linear_model(), **settings)
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_model_that_breaks_the_contract_is_refused() -> None:
+    model = linear_model()
+    model.B_ = np.zeros((4, 3))
+    with pytest.raises(ValueError, match=r"model\.B_"):
+        DEMPC(model)
+
+
+@pytest.mark.parametrize(("name", "horizons"), [("de_mpc", (10, 7)), ("de_mpc_long", (60, 50))])
+def test_the_configs_instantiate_with_the_model_given_at_run_time(name, horizons) -> None:
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"+controller={name}"])
+    controller = instantiate(cfg.controller)(linear_model())
+    assert isinstance(controller, DEMPC) and (controller.Np, controller.Nc) == horizons
+    np.testing.assert_allclose(controller.qp.Q, 1000 * np.eye(3))
+    # The paper's limits, mapped onto the normalized inputs and back.
+    np.testing.assert_allclose(
+        controller.normalizer.inputs_inverse(controller.qp.v_max), [450.0, 0.2]
+    )
+    np.testing.assert_allclose(
+        controller.normalizer.inputs_inverse(controller.qp.v_min), [-450.0, -9.1]
+    )
+
+
+def test_the_limits_map_onto_the_normalized_inputs() -> None:
+    controller = DEMPC(linear_model())
+    span = np.array([900.0, 2.0])  # steering degrees, signed pedal scale
+    np.testing.assert_allclose(controller.qp.dv_max * span, [2.25, 0.18 / 9.1])
+
+
+@pytest.fixture(scope="module")
+def quick_model_and_episode() -> tuple[LiftedLinearModel, Episode]:
+    """A least-squares polynomial Koopman model (N = 13) on 45 s of driving; one held-out drive."""
+    data = DataConfig()
+    plant = Sedan()
+    episodes = []
+    for index in range(4):
+        drive = drive_episode(plant.params, data, index, 1500)
+        episodes.append(
+            Episode(f"e{index}", drive["time_s"], drive["states"], drive["inputs"], drive["poses"])
+        )
+    return fit_lifted_linear(episodes[:3]), episodes[3]
+
+
+def test_a_short_closed_loop_on_the_sedan_runs_and_reports(quick_model_and_episode) -> None:
+    model, episode = quick_model_and_episode
+    assert model.A_.shape == (13, 13)
+    reference = from_episode(episode)[600:800]  # 2 s while moving
+    metrics, run = track(
+        Sedan(), DEMPC(model, Np=60, Nc=50), reference, name="sedan", recorder=Recorder()
+    )
+    assert set(metrics) >= {"rmse", "solve_time_ms", "deadline_misses", "solver_failures"}
+    assert set(metrics["rmse"]) == {"vx", "vy", "yaw_rate"}
+    assert set(metrics["solve_time_ms"]) == {"median", "p99", "max"}
+    assert all(np.isfinite(v) for v in metrics["rmse"].values())
+    assert metrics["rmse"]["vx"] < 2.0
+    assert run.predicted.shape == (200, 60, 3)

@@ -1,0 +1,143 @@
+"""Tracking: references are the states a path needs; a run reports, records and plots itself."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controllers import DEMPC
+from controllers.lifted_linear import ModelPlant, feasible_reference
+from controllers.lifted_linear import toy_linear_model as linear_model
+from harness.data import Episode
+from harness.recorder import Recorder, RerunRecorder
+from harness.references import (
+    BicycleParams,
+    double_lane_change,
+    double_lane_change_path,
+    from_episode,
+    lane_offset_m,
+)
+from harness.tracking import track
+
+G = 9.81
+
+
+def integrate_path(states: np.ndarray, dt: float = 0.01) -> np.ndarray:
+    """World (X, Y) of the CG from (vx, vy, r): what a car driving these states covers."""
+    vx, vy, r = states.T
+    yaw = np.concatenate([[0.0], np.cumsum(r[:-1]) * dt])
+    return (
+        np.cumsum(
+            np.stack([vx * np.cos(yaw) - vy * np.sin(yaw), vx * np.sin(yaw) + vy * np.cos(yaw)], 1),
+            axis=0,
+        )
+        * dt
+    )
+
+
+def test_iso_3888_1_at_80_kph_is_driven_at_constant_speed_and_returns_to_its_lane() -> None:
+    speed = 80 / 3.6
+    states = double_lane_change(speed, "iso3888_1", sideslip=False)
+    np.testing.assert_allclose(states[:, 0], speed)
+    assert np.all(states[:, 1] == 0.0)
+    path = integrate_path(states)
+    _, y = double_lane_change_path("iso3888_1")
+    assert path[:, 1].max() == pytest.approx(3.5, abs=0.05) == y.max()
+    assert abs(path[-1, 1]) < 0.05 and abs(np.sum(states[:, 2]) * 0.01) < 1e-3  # heading back
+    lateral_accel = np.abs(states[:, 0] * states[:, 2])
+    assert 0.3 * G < lateral_accel.max() < 0.6 * G  # a real manoeuvre, inside the tyres' grip
+
+
+def test_iso_3888_2_geometry_and_its_demand() -> None:
+    assert lane_offset_m("iso3888_2", vehicle_width_m=1.8) == pytest.approx(3.515)
+    slow = double_lane_change(50 / 3.6, "iso3888_2")
+    fast = double_lane_change(80 / 3.6, "iso3888_2")
+    assert np.abs(slow[:, 0] * slow[:, 2]).max() < 0.8 * G < np.abs(fast[:, 0] * fast[:, 2]).max()
+
+
+def test_sideslip_follows_the_bicycle_models_steady_state() -> None:
+    states = double_lane_change()
+    gain = BicycleParams().vy_per_yaw_rate_m(80 / 3.6)
+    assert -1.6 < gain < -1.0  # the body points inside the turn at 80 km/h
+    np.testing.assert_allclose(states[:, 1], gain * states[:, 2])
+
+
+def test_an_unknown_standard_or_speed_is_refused() -> None:
+    with pytest.raises(ValueError, match="standard"):
+        double_lane_change(20.0, "iso9999")
+    with pytest.raises(ValueError, match="speed_mps"):
+        double_lane_change(0.0)
+
+
+def test_a_reference_from_an_episode_is_its_recorded_states() -> None:
+    states = np.random.default_rng(0).normal(size=(50, 3))
+    episode = Episode("test_0", np.arange(50) * 0.01, states, np.zeros((50, 2)), np.zeros((50, 3)))
+    reference = from_episode(episode)
+    np.testing.assert_array_equal(reference, states)
+    assert reference is not episode.states
+
+
+class ListeningRecorder(Recorder):
+    """Keeps what it is given, so a test can see what a run logs."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rollouts: dict[str, dict] = {}
+        self.series_calls: list[tuple[str, np.ndarray, dict]] = []
+
+    def rollout(self, name, time_s, states, inputs, poses=None, extra=None, **_) -> None:
+        self.rollouts[name] = {"time_s": time_s, "states": states, "extra": extra or {}}
+
+    def series(self, path, time_s, values, timeline="sim_time") -> None:
+        self.series_calls.append((path, time_s, values))
+
+
+def test_a_tracking_run_reports_records_and_plots(tmp_path: Path) -> None:
+    model = linear_model()
+    reference = feasible_reference(model, steps=300)
+    recorder = ListeningRecorder()
+    metrics, run = track(
+        ModelPlant(model, x0=reference[0]),
+        DEMPC(model, Np=10, Nc=7),
+        reference,
+        name="dlc",
+        recorder=recorder,
+        figure_path=tmp_path / "tracking.png",
+    )
+    assert set(metrics["rmse"]) == {"vx", "vy", "yaw_rate"}
+    assert set(metrics["solve_time_ms"]) == {"median", "p99", "max"}
+    assert metrics["deadline_misses"] == 0 and metrics["solver_failures"] == 0
+    assert sum(metrics["solve_paths"].values()) == metrics["steps"] == 299
+    assert run.states.shape == reference.shape and run.predicted.shape == (300, 10, 3)
+    # The rollout, then one plot per state with reference, actual and prediction, then the
+    # whole horizon as columns.
+    assert recorder.rollouts["dlc"]["states"].shape == (300, 3)
+    assert "solve_time_ms" in recorder.rollouts["dlc"]["extra"]
+    keys = {(path, key) for path, _, values in recorder.series_calls for key in values}
+    assert {("dlc/tracking/vx", "reference"), ("dlc/tracking/vx", "actual")} <= keys
+    assert ("dlc/tracking/yaw_rate", "predicted_10_ahead") in keys
+    horizon = next(v for p, _, v in recorder.series_calls if p == "dlc/horizon/vy")["ahead"]
+    assert horizon.shape == (300, 10)
+    assert (tmp_path / "tracking.png").stat().st_size > 10_000
+
+
+def test_a_run_writes_a_rerun_recording(tmp_path: Path) -> None:
+    model = linear_model()
+    reference = feasible_reference(model, steps=100)
+    with RerunRecorder(tmp_path / "track.rrd") as recorder:
+        track(
+            ModelPlant(model, x0=reference[0]),
+            DEMPC(model),
+            reference,
+            name="short",
+            recorder=recorder,
+        )
+    assert (tmp_path / "track.rrd").stat().st_size > 0
+
+
+def test_a_malformed_reference_is_refused() -> None:
+    model = linear_model()
+    with pytest.raises(ValueError, match="reference"):
+        track(ModelPlant(model), DEMPC(model), np.zeros((10, 2)), name="x", recorder=Recorder())
