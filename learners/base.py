@@ -1,0 +1,252 @@
+"""The learner contract shared by EDMD, ELM-EDMD, DNN and Deep EDMD, and the one model file format.
+
+Every learner models x_{k+1} = f(x_k, u_k) for x = (vx, vy, yaw_rate) [m/s, m/s, rad/s] and
+u = (steer_wheel_deg, pedal). Learners train in the min-max normalized coordinates of
+:class:`~harness.data.episode.MinMaxNormalizer` (fitted on the training episodes only) and speak
+physical units at their interface.
+
+Koopman learners additionally expose a lifted linear model for the MPC::
+
+    z_0     = lift(x_0)                                  (N,)
+    z_{k+1} = A_ @ z_k + B_ @ normalizer_.inputs(u_k)
+    x_hat_k = normalizer_.states_inverse(C_ @ z_k)
+
+In every Koopman learner of this package the lifted state starts with the normalized state
+itself, z = [normalizer_.states(x); ...], so ``C_ = [I 0]`` exactly (EDMD's "the lifted state
+includes x"); Deep EDMD with ``lifted_includes_state=false`` is the one exception and fits
+``C_`` by least squares (the paper's eq. for C).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, ClassVar, Self
+
+import numpy as np
+import torch
+
+from harness.data.episode import Episode, MinMaxNormalizer
+from harness.recorder import Recorder
+
+__all__ = ["FORMAT", "KoopmanLearner", "Learner", "load"]
+
+FORMAT = "koopman-vehicle-harness/learner"
+FORMAT_VERSION = 1
+STATE_DIM = 3  # vx, vy, yaw_rate
+INPUT_DIM = 2  # steer_wheel_deg, pedal
+
+
+class Learner(ABC):
+    """A model of x_{k+1} = f(x_k, u_k) learned from episodes.
+
+    Subclasses set ``name`` (their config-group name, used in messages and file names) and
+    keep their hyperparameters as constructor keywords, so that a config maps 1:1 to the code.
+    """
+
+    name: ClassVar[str]
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        abstract = any(
+            getattr(getattr(cls, attr, None), "__isabstractmethod__", False) for attr in dir(cls)
+        )
+        if not abstract and not isinstance(getattr(cls, "name", None), str):
+            raise TypeError(f"{cls.__qualname__} must set the class attribute `name`")
+
+    @abstractmethod
+    def fit(
+        self,
+        train: Sequence[Episode],
+        validation: Sequence[Episode],
+        normalizer: MinMaxNormalizer,
+        *,
+        recorder: Recorder | None = None,
+        output_dir: Path | None = None,
+    ) -> Self:
+        """Fit on ``train`` (``validation`` for early stopping where it applies); return self."""
+
+    @abstractmethod
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """Open-loop rollout in physical units.
+
+        Args:
+            x0: (..., 3) initial states.
+            inputs: (..., T, 2) inputs u_0 .. u_{T-1}.
+
+        Returns:
+            (..., T + 1, 3) predicted states; row 0 is ``x0`` itself.
+        """
+
+    def save(self, path: str | Path) -> Path:
+        """Write the fitted model to one file that :func:`load` reads back; returns the path."""
+        path = Path(path)
+        _require_fitted(self)
+        payload = {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "class": f"{type(self).__module__}.{type(self).__qualname__}",
+            "hyperparameters": self.hyperparameters,
+            "state_dim": int(self.normalizer_.state_min.shape[0]),
+            "input_dim": int(self.normalizer_.input_min.shape[0]),
+            "normalizer": self.normalizer_.to_dict(),
+            "tensors": {k: torch.as_tensor(np.asarray(v)) for k, v in self._state().items()},
+        }
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        torch.save(payload, tmp)
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Learner:
+        """Read a file written by :meth:`save` (of this class or, from ``Learner``, any class)."""
+        learner = load(path)
+        if not isinstance(learner, cls):
+            raise ValueError(f"{path} holds a {type(learner).__name__}, not a {cls.__name__}")
+        return learner
+
+    @property
+    def hyperparameters(self) -> dict[str, Any]:
+        """The constructor keywords this learner was built with (what its config holds)."""
+        return dict(self._hyperparameters)
+
+    # -- for subclasses -------------------------------------------------------------------------
+
+    _hyperparameters: dict[str, Any]
+    normalizer_: MinMaxNormalizer
+
+    @abstractmethod
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
+        """The fitted arrays that, with the hyperparameters and normalizer, define the model."""
+
+    @abstractmethod
+    def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
+        """Restore what :meth:`_state` returned (called on a freshly constructed learner)."""
+
+
+class KoopmanLearner(Learner):
+    """A learner whose model is linear in a lifted state (see the module docstring).
+
+    Fitted attributes: ``A_`` (N, N), ``B_`` (N, m), ``C_`` (n, N) as float64 numpy arrays, and
+    ``normalizer_``.
+    """
+
+    A_: np.ndarray
+    B_: np.ndarray
+    C_: np.ndarray
+
+    @abstractmethod
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """Lifted state z = lift(x) of physical states x (..., 3) -> (..., N)."""
+
+
+def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT_DIM) -> Learner:
+    """Load any learner written by :meth:`Learner.save`, checking it models this harness's sizes.
+
+    Raises:
+        ValueError: (one line) when the file is not a learner file, or models another number of
+            states or inputs than ``state_dim`` / ``input_dim``.
+    """
+    path = Path(path)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # any unreadable file gets the same one-line answer
+        reason = str(error).splitlines()[0][:80] if str(error) else type(error).__name__
+        raise ValueError(f"{path} is not a learner file ({reason})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise ValueError(f"{path} is not a learner file (no '{FORMAT}' header)")
+    if payload.get("version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{path} is learner format version {payload.get('version')}, "
+            f"this harness reads version {FORMAT_VERSION}"
+        )
+    if (payload["state_dim"], payload["input_dim"]) != (state_dim, input_dim):
+        raise ValueError(
+            f"{path} models {payload['state_dim']} states and {payload['input_dim']} inputs; "
+            f"expected {state_dim} states and {input_dim} inputs"
+        )
+    module_name, _, class_name = payload["class"].rpartition(".")
+    if not module_name.startswith("learners."):
+        raise ValueError(f"{path} names class {payload['class']!r} outside the learners package")
+    cls = getattr(importlib.import_module(module_name), class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, Learner)):
+        raise ValueError(f"{path} names {payload['class']!r}, which is not a learner class")
+    learner = cls(**payload["hyperparameters"])
+    learner.normalizer_ = MinMaxNormalizer.from_dict(payload["normalizer"])
+    learner._set_state(payload["tensors"])
+    return learner
+
+
+# -- validation helpers shared by the learners ---------------------------------------------------
+
+
+def check(condition: bool, key: str, requirement: str, value: Any) -> None:
+    """Raise the harness's one-line ``ValueError`` naming the config key when a value is wrong."""
+    if not condition:
+        raise ValueError(f"learner.{key} must be {requirement} (got {value!r})")
+
+
+def check_int(key: str, value: Any, minimum: int) -> int:
+    ok = isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= minimum
+    check(ok, key, f"an integer >= {minimum}", value)
+    return int(value)
+
+
+def check_positive(key: str, value: Any) -> float:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    check(ok and value > 0, key, "> 0", value)
+    return float(value)
+
+
+def check_nonnegative(key: str, value: Any) -> float:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    check(ok and value >= 0, key, ">= 0", value)
+    return float(value)
+
+
+def check_choice(key: str, value: Any, choices: Sequence[str]) -> str:
+    check(value in choices, key, f"one of {', '.join(choices)}", value)
+    return str(value)
+
+
+def check_episodes(
+    episodes: Sequence[Episode], role: str, normalizer: MinMaxNormalizer, min_length: int = 2
+) -> None:
+    """Refuse empty, too short, mis-shaped or non-finite episodes in one line naming the episode."""
+    if not episodes:
+        raise ValueError(f"no {role} episodes")
+    n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
+    for e in episodes:
+        if e.states.ndim != 2 or e.states.shape[1] != n or e.inputs.shape[1:] != (m,):
+            raise ValueError(
+                f"{role} episode {e.name!r}: states {e.states.shape} / inputs {e.inputs.shape} "
+                f"do not match the normalizer's {n} states and {m} inputs"
+            )
+        if len(e) < min_length:
+            raise ValueError(f"{role} episode {e.name!r} has {len(e)} samples, need {min_length}")
+        for field in ("states", "inputs"):
+            if not np.all(np.isfinite(getattr(e, field))):
+                raise ValueError(f"{role} episode {e.name!r}: {field} contain NaN or inf")
+
+
+def check_rollout_args(x0: np.ndarray, inputs: np.ndarray, n: int, m: int) -> tuple:
+    """Validate predict() arguments; returns float64 arrays (x0 (..., n), inputs (..., T, m))."""
+    x0 = np.asarray(x0, dtype=np.float64)
+    inputs = np.asarray(inputs, dtype=np.float64)
+    if x0.shape[-1:] != (n,) or inputs.ndim < 2 or inputs.shape[-1] != m:
+        raise ValueError(
+            f"predict needs x0 (..., {n}) and inputs (..., T, {m}); "
+            f"got {x0.shape} and {inputs.shape}"
+        )
+    if inputs.shape[:-2] != x0.shape[:-1]:
+        raise ValueError(f"predict: batch shapes differ, x0 {x0.shape} vs inputs {inputs.shape}")
+    return x0, inputs
+
+
+def _require_fitted(learner: Learner) -> None:
+    if not hasattr(learner, "normalizer_"):
+        raise ValueError(f"{learner.name} is not fitted yet: call fit() first")

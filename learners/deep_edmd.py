@@ -1,0 +1,394 @@
+"""Deep EDMD (the paper's Sec. IV-B): an encoder learns the observables, A and B are linear layers.
+
+Network (normalized coordinates, n = 3 states, m = 2 inputs, L = ``lifted_dim``)::
+
+    encoder  phi_e: [n, *encoder_hidden, L, L]  ReLU, last layer linear   (paper: [n 32 64 L L])
+    lift     z = [x_n; phi_e(x_n)] (N = n + L)   if lifted_includes_state, else z = phi_e(x_n)
+    Koopman  z_{k+1} = A z_k + B v_k             bias-free linear layers A (N, N), B (N, m)
+    decoder  [N, *decoder_hidden, n]             ReLU, sigmoid output  (paper: [L+n 128 64 32 n])
+
+Reading of the paper: its decoder input is L + n wide and its MPC "also include[s] the original
+state x ... in the lifted space", so by default the lifted state is [x_n; phi_e] and the decoder
+sees all of it. Then ``C_ = [I 0]`` is the MPC's exact linear read-out while ``predict`` uses the
+decoder, as the paper does (``prediction_output: linear`` predicts with C_ instead). With
+``lifted_includes_state: false`` the lift is phi_e alone, the decoder is L wide and ``C_`` is the
+least-squares map phi_e(x) -> x (the paper's eq. for C).
+
+Loss over windows of p = ``horizon`` steps (eqs. for L_xx, L_xo, L_ox, L_inf; batch means)::
+
+    L = a_ox L_ox + a_xx L_xx + a_xo L_xo + a_inf L_inf + a_e ||theta_e||^2 + a_d ||theta_d||^2
+    L_ox  = 1/p sum_{i=1..p} ||x_i - dec(z_i)||^2                 reconstruction
+    L_xx  = 1/p sum_{i=1..p} ||x_i - dec(K^[i] z_0)||^2           multi-step prediction
+    L_xo  = 1/p sum_{i=1..p} ||z_i - K^[i] z_0||^2                linearity of the lifted evolution
+    L_inf = 1/p sum_i ||x_i - dec(z_i)||_inf + 1/p sum_i ||x_i - dec(K^[i] z_0)||_inf
+
+where z_i = lift(x_i) and K^[i] z_0 = A^i z_0 + sum_{j<i} A^{i-1-j} B v_j (eq. for K^[p]).
+:func:`deep_edmd_loss_terms` is this definition in plain autograd; training uses
+:func:`deep_edmd_step`, the same loss with a hand-written backward (tests check they agree).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+
+from harness.data.episode import Episode
+from learners.base import (
+    KoopmanLearner,
+    check,
+    check_choice,
+    check_int,
+    check_nonnegative,
+)
+from learners.edmd import linear_rollout
+from learners.linalg import ridge_lstsq, row_chunks
+from learners.nets import Dense, LayerSpec, mlp_apply, mlp_backward, mlp_forward, mlp_specs
+from learners.trained import TrainedLearner
+from learners.training import batch_mean_terms
+
+__all__ = ["DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
+
+_LSTSQ_RIDGE = 1e-10  # relative ridge of the optional least-squares refit of A, B (and of C)
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """alpha_1 .. alpha_6 of the paper's total loss (defaults: its Table of hyperparameters)."""
+
+    ox: float = 1.0
+    xx: float = 1.0
+    xo: float = 0.3
+    inf: float = 1e-9
+    encoder_l2: float = 1e-9
+    decoder_l2: float = 1e-9
+
+    @classmethod
+    def from_config(cls, values: Mapping[str, Any] | None) -> LossWeights:
+        values = dict(values or {})
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"learner.alpha.{sorted(unknown)[0]} is not a loss weight")
+        weights = cls(**values)
+        for f in fields(cls):
+            check_nonnegative(f"alpha.{f.name}", getattr(weights, f.name))
+        return weights
+
+    def data_terms(self) -> dict[str, float]:
+        return {"ox": self.ox, "xx": self.xx, "xo": self.xo, "inf": self.inf}
+
+
+def _koopman_rollout(
+    z0: torch.Tensor, v: torch.Tensor, a: torch.Tensor, b: torch.Tensor
+) -> torch.Tensor:
+    """K^[i] z_0, i = 1..p, step by step as the paper writes it: (B, N), (B, p, m) -> (B, p, N)."""
+    z, out = z0, []
+    for i in range(v.shape[1]):
+        z = z @ a.t() + v[:, i] @ b.t()
+        out.append(z)
+    return torch.stack(out, 1)
+
+
+def deep_edmd_loss_terms(
+    encoder: Sequence[Dense],
+    decoder: Sequence[Dense],
+    a: torch.Tensor,
+    b: torch.Tensor,
+    x: torch.Tensor,
+    v: torch.Tensor,
+    *,
+    lifted_includes_state: bool,
+) -> dict[str, torch.Tensor]:
+    """The paper's L_ox, L_xx, L_xo, L_inf of windows x (B, p+1, n), v (B, p, m); batch means.
+
+    Plain autograd, written to read like the equations (module docstring); it is the
+    specification that :func:`deep_edmd_step` is tested against, and the validation loss.
+    """
+    phi = mlp_apply(encoder, x)
+    z = torch.cat([x, phi], -1) if lifted_includes_state else phi
+    z_pred = _koopman_rollout(z[:, 0], v, a, b)
+    x_next = x[:, 1:]
+    recon_err = x_next - mlp_apply(decoder, z[:, 1:])
+    pred_err = x_next - mlp_apply(decoder, z_pred)
+    lift_err = z[:, 1:] - z_pred
+    return {
+        "ox": (recon_err**2).sum(-1).mean(1).mean(),
+        "xx": (pred_err**2).sum(-1).mean(1).mean(),
+        "xo": (lift_err**2).sum(-1).mean(1).mean(),
+        "inf": (recon_err.abs().amax(-1).mean(1) + pred_err.abs().amax(-1).mean(1)).mean(),
+    }
+
+
+def _powers(a: torch.Tensor, steps: int) -> list[tuple[int, torch.Tensor]]:
+    """(s, A^s) for s = 1, 2, 4, ... < steps + 1 (repeated squaring)."""
+    out, s, power = [], 1, a
+    while s <= steps:
+        out.append((s, power))
+        power, s = power @ power, 2 * s
+    return out
+
+
+def _scan(c: torch.Tensor, powers: Sequence[tuple[int, torch.Tensor]]) -> torch.Tensor:
+    """h_i = sum_{j <= i} M^{i-j} c_j along dim 0, in log2(len) batched steps (Hillis-Steele).
+
+    ``c`` is time-major (T, B, N) so that every shifted block is contiguous and one matmul.
+    """
+    h = c.clone()
+    size = h.shape[-1]
+    for s, power in powers:
+        if s >= h.shape[0]:
+            break
+        h[s:] += (h[:-s].reshape(-1, size) @ power.t()).view(h[s:].shape)
+    return h
+
+
+def deep_edmd_step(
+    encoder: Sequence[Dense],
+    decoder: Sequence[Dense],
+    a: torch.Tensor,
+    b: torch.Tensor,
+    grad_a: torch.Tensor,
+    grad_b: torch.Tensor,
+    x: torch.Tensor,
+    v: torch.Tensor,
+    weights: LossWeights,
+    *,
+    lifted_includes_state: bool,
+) -> float:
+    """sum_k alpha_k L_k over the data terms, with its gradient ADDED into the grad views.
+
+    The same loss as :func:`deep_edmd_loss_terms`, computed for speed: time-major tensors, one
+    encoder pass over all B (p+1) samples, K^[i] z_0 for all i by a log-depth scan with powers
+    of A (the adjoint lambda_i = g_i + A^T lambda_{i+1} by the same scan with A^T), one decoder
+    pass over the 2 B p reconstructions and predictions, and a hand-written backward.
+    """
+    batch, p, n = x.shape[0], x.shape[1] - 1, x.shape[2]
+    m = v.shape[2]
+    x = x.transpose(0, 1).contiguous()  # (p+1, B, n)
+    v = v.transpose(0, 1).reshape(-1, m)  # (p B, m), time-major rows
+    acts_e = mlp_forward(encoder, x.view(-1, n))
+    phi = acts_e[-1].view(p + 1, batch, -1)
+    z = torch.cat([x, phi], -1) if lifted_includes_state else phi
+    size = z.shape[-1]
+    powers = _powers(a, p)
+    h = _scan(torch.cat([z[:1], (v @ b.t()).view(p, batch, size)]), powers)  # h_i = K^[i] z_0
+    z_pred = h[1:]
+    acts_d = mlp_forward(decoder, torch.cat([z[1:], z_pred]).view(-1, size))
+    err = x[1:].repeat(2, 1, 1) - acts_d[-1].view(2 * p, batch, n)  # [recon | pred]
+    lift_err = z[1:] - z_pred
+    c_ox, c_xx = weights.ox / (batch * p), weights.xx / (batch * p)
+    c_xo, c_inf = weights.xo / (batch * p), weights.inf / (batch * p)
+    squared = (err * err).sum(-1)
+    peak, where = err.abs().max(-1)
+    loss = (
+        c_ox * squared[:p].sum()
+        + c_xx * squared[p:].sum()
+        + c_xo * (lift_err * lift_err).sum()
+        + c_inf * peak.sum()
+    )
+    # backward: d loss / d decoder output, then through the decoder, A/B and the encoder
+    coef = torch.cat([torch.full((p, 1, 1), -2.0 * c_ox), torch.full((p, 1, 1), -2.0 * c_xx)])
+    grad_d = err * coef
+    where = where.unsqueeze(-1)
+    grad_d.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
+    grad_in = mlp_backward(decoder, acts_d, grad_d.view(-1, n)).view(2 * p, batch, size)
+    grad_z = grad_in[:p] + (2.0 * c_xo) * lift_err  # d/d z_1..z_p (reconstruction, L_xo)
+    grad_pred = grad_in[p:] - (2.0 * c_xo) * lift_err  # d/d K^[i] z_0
+    adjoint = _scan(grad_pred.flip(0), [(s, pw.t()) for s, pw in powers]).flip(0)
+    flat_adjoint = adjoint.reshape(-1, size)
+    grad_a.addmm_(flat_adjoint.t(), h[:-1].reshape(-1, size))
+    grad_b.addmm_(flat_adjoint.t(), v)
+    grad_z = torch.cat([(adjoint[0] @ a).unsqueeze(0), grad_z])
+    grad_phi = grad_z[..., n:] if lifted_includes_state else grad_z
+    mlp_backward(encoder, acts_e, grad_phi.reshape(-1, grad_phi.shape[-1]), need_input_grad=False)
+    return float(loss)
+
+
+class _Objective:
+    """Deep EDMD's loss for the training loop (learners.training.Objective)."""
+
+    def __init__(self, learner: DeepEDMD) -> None:
+        self.learner = learner
+        self.params = learner.params_
+        self.encoder = self.params.layers("encoder")
+        self.decoder = self.params.layers("decoder")
+        views, grads = self.params.views(), self.params.views(self.params.grad)
+        self.a, self.b = views["koopman.A.weight"], views["koopman.B.weight"]
+        self.grad_a, self.grad_b = grads["koopman.A.weight"], grads["koopman.B.weight"]
+        self.spans = (self.params.span("encoder"), self.params.span("decoder"))
+
+    def _encoder(self, layer: Dense | None) -> list[Dense]:
+        return self.encoder if layer is None else [*self.encoder[:-1], layer, self.encoder[-1]]
+
+    def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
+        learner = self.learner
+        loss = deep_edmd_step(
+            self._encoder(learner._step_layer(step)),
+            self.decoder,
+            self.a,
+            self.b,
+            self.grad_a,
+            self.grad_b,
+            x,
+            v,
+            learner.alpha,
+            lifted_includes_state=learner.lifted_includes_state,
+        )
+        # alpha_5 ||theta_e||^2 + alpha_6 ||theta_d||^2: gradient 2 alpha theta, added exactly
+        data, grad = self.params.data, self.params.grad
+        for span, weight in zip(
+            self.spans, (learner.alpha.encoder_l2, learner.alpha.decoder_l2), strict=True
+        ):
+            if weight:
+                grad[span].add_(data[span], alpha=2.0 * weight)
+        return loss
+
+    def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
+        with torch.no_grad():
+            terms = deep_edmd_loss_terms(
+                self.encoder,
+                self.decoder,
+                self.a,
+                self.b,
+                x,
+                v,
+                lifted_includes_state=self.learner.lifted_includes_state,
+            )
+        return batch_mean_terms(terms, self.learner.alpha.data_terms())
+
+
+class DeepEDMD(TrainedLearner, KoopmanLearner):
+    """Deep EDMD (see the module docstring for the model, the loss and the reading of the paper).
+
+    Args:
+        lifted_dim: L, the encoder's output width.
+        horizon: p, the steps of every training window.
+        encoder_hidden: Hidden widths of the encoder before its two L-wide layers.
+        decoder_hidden: Hidden widths of the decoder.
+        lifted_includes_state: z = [x_n; phi_e(x_n)] (true) or phi_e(x_n) (false).
+        alpha: Loss weights ox, xx, xo, inf, encoder_l2, decoder_l2 (paper's alpha_1..6).
+        prediction_output: ``decoder`` (paper) or ``linear`` (C_ z) for ``predict``.
+        refit_koopman_lstsq: After training, replace A, B by the least-squares fit on the
+            lifted training data (the paper's optional last step).
+        random_layer: ``enabled``, ``std`` of the extra encoder layer redrawn every step.
+        training: :class:`~learners.training.TrainingConfig` keys.
+    """
+
+    name: ClassVar[str] = "deep_edmd"
+
+    def __init__(
+        self,
+        lifted_dim: int = 10,
+        horizon: int = 41,
+        encoder_hidden: Sequence[int] = (32, 64),
+        decoder_hidden: Sequence[int] = (128, 64, 32),
+        lifted_includes_state: bool = True,
+        alpha: Mapping[str, float] | None = None,
+        prediction_output: str = "decoder",
+        refit_koopman_lstsq: bool = False,
+        random_layer: Mapping[str, Any] | None = None,
+        training: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__(horizon=horizon, random_layer=random_layer, training=training)
+        self.lifted_dim = check_int("lifted_dim", lifted_dim, 1)
+        self.encoder_hidden = [check_int("encoder_hidden", w, 1) for w in encoder_hidden]
+        self.decoder_hidden = [check_int("decoder_hidden", w, 1) for w in decoder_hidden]
+        check(
+            isinstance(lifted_includes_state, bool),
+            "lifted_includes_state",
+            "true or false",
+            lifted_includes_state,
+        )
+        self.lifted_includes_state = lifted_includes_state
+        self.alpha = LossWeights.from_config(alpha)
+        self.prediction_output = check_choice(
+            "prediction_output", prediction_output, ("decoder", "linear")
+        )
+        self.refit_koopman_lstsq = bool(refit_koopman_lstsq)
+        self._random_layer_width = self.lifted_dim
+        self._hyperparameters = {
+            "lifted_dim": self.lifted_dim,
+            "horizon": self.horizon,
+            "encoder_hidden": list(self.encoder_hidden),
+            "decoder_hidden": list(self.decoder_hidden),
+            "lifted_includes_state": self.lifted_includes_state,
+            "alpha": asdict(self.alpha),
+            "prediction_output": self.prediction_output,
+            "refit_koopman_lstsq": self.refit_koopman_lstsq,
+            "random_layer": asdict(self.random_layer),
+            "training": asdict(self.training),
+        }
+
+    # -- network ---------------------------------------------------------------------------------
+
+    def _specs(self, n: int, m: int) -> list[LayerSpec]:
+        size = self.lifted_dim + (n if self.lifted_includes_state else 0)
+        widths_e = [n, *self.encoder_hidden, self.lifted_dim, self.lifted_dim]
+        return [
+            *mlp_specs("encoder", widths_e, "linear"),
+            *mlp_specs("decoder", [size, *self.decoder_hidden, n], "sigmoid"),
+            LayerSpec("koopman.A", size, size, "linear", bias=False),
+            LayerSpec("koopman.B", m, size, "linear", bias=False),
+        ]
+
+    def _objective(self) -> _Objective:
+        return _Objective(self)
+
+    def _lift_n(self, x_n: torch.Tensor, layer: Dense | None = None) -> torch.Tensor:
+        encoder = self.params_.layers("encoder")
+        if layer is not None:
+            encoder = [*encoder[:-1], layer, encoder[-1]]
+        phi = mlp_apply(encoder, x_n)
+        return torch.cat([x_n, phi], -1) if self.lifted_includes_state else phi
+
+    def _after_training(self, train: Sequence[Episode]) -> None:
+        views = self.params_.views()
+        n = self.normalizer_.state_min.shape[0]
+        if self.refit_koopman_lstsq:
+            theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
+            size = theta.shape[1]
+            views["koopman.A.weight"].copy_(torch.from_numpy(theta[:size].T))
+            views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
+        self.A_ = views["koopman.A.weight"].double().numpy().copy()
+        self.B_ = views["koopman.B.weight"].double().numpy().copy()
+        if self.lifted_includes_state:
+            self.C_ = np.eye(n, self.A_.shape[0])
+        else:  # the paper's C = argmin sum ||x_k - C phi(x_k)||^2
+            self.C_ = ridge_lstsq(self._lifted_states(train), _LSTSQ_RIDGE).T
+
+    def _lifted_pairs(self, episodes: Sequence[Episode]):
+        for e in episodes:
+            z = self.lift(e.states)
+            v = self.normalizer_.inputs(e.inputs)
+            for rows in row_chunks(z[:-1], 20_000):
+                yield np.hstack([z[:-1][rows], v[:-1][rows]]), z[1:][rows]
+
+    def _lifted_states(self, episodes: Sequence[Episode]):
+        for e in episodes:
+            yield self.lift(e.states), self.normalizer_.states(e.states)
+
+    # -- the Koopman contract ----------------------------------------------------------------------
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        x_n = torch.from_numpy(self.normalizer_.states(np.asarray(x, float)).astype(np.float32))
+        with torch.inference_mode():
+            return self._lift_n(x_n).double().numpy()
+
+    def _rollout_n(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> torch.Tensor:
+        z0 = self._lift_n(x0, layer).double().numpy()
+        z = linear_rollout(self.A_, self.B_, z0, v.double().numpy())
+        if self.prediction_output == "linear":
+            with np.errstate(over="ignore", invalid="ignore"):
+                return torch.from_numpy(z @ self.C_.T)
+        decoder = self.params_.layers("decoder")
+        return mlp_apply(decoder, torch.from_numpy(z.astype(np.float32)))
+
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
+        return {**super()._state(), "A": self.A_, "B": self.B_, "C": self.C_}
+
+    def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
+        super()._set_state(state)
+        self.A_, self.B_, self.C_ = (state[k].double().numpy().copy() for k in "ABC")

@@ -1,0 +1,239 @@
+"""The paper's DNN baseline: an MLP M(x, u) -> next state, trained on multi-step rollouts.
+
+Network [n + m, 32, 64, 128, 128, 64, 32, n] (ReLU hidden layers, linear output) on normalized
+coordinates. Loss over windows of p = ``horizon`` steps (the paper's eq. for L_mlp, batch mean)::
+
+    x_hat_0 = x_0,   x_hat_i = M(x_hat_{i-1}, v_{i-1})          (x_hat_{i-1} + M(...) if residual)
+    L_mlp = b_1/p sum_{i=1..p} ||x_i - x_hat_i||^2 + b_2/p sum_i ||x_i - x_hat_i||_inf
+            + b_3 ||theta_M||^2
+
+The paper's indices (x_{i+1} - M(x_hat_i)) are read as this rollout: each prediction is fed
+back, and every predicted step is compared with the measured state. :func:`dnn_loss_terms` is the
+definition in plain autograd; training uses :func:`dnn_step`, the same loss with a hand-written
+back-propagation through time (tests check they agree).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from typing import Any, ClassVar
+
+import torch
+
+from learners.base import check_int, check_nonnegative
+from learners.nets import Dense, LayerSpec, mlp_apply, mlp_forward, mlp_specs
+from learners.trained import TrainedLearner
+from learners.training import batch_mean_terms
+
+__all__ = ["DNN", "DNNLossWeights", "dnn_loss_terms", "dnn_step"]
+
+
+@dataclass(frozen=True)
+class DNNLossWeights:
+    """beta_1 .. beta_3 of L_mlp (defaults: the paper's Table of hyperparameters)."""
+
+    prediction: float = 1.0
+    inf: float = 1e-9
+    l2: float = 1e-9
+
+    @classmethod
+    def from_config(cls, values: Mapping[str, Any] | None) -> DNNLossWeights:
+        values = dict(values or {})
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"learner.beta.{sorted(unknown)[0]} is not a loss weight")
+        weights = cls(**values)
+        for f in fields(cls):
+            check_nonnegative(f"beta.{f.name}", getattr(weights, f.name))
+        return weights
+
+
+def dnn_loss_terms(
+    layers: Sequence[Dense], x: torch.Tensor, v: torch.Tensor, *, residual: bool
+) -> dict[str, torch.Tensor]:
+    """The data terms of L_mlp for windows x (B, p+1, n), v (B, p, m): batch means, autograd."""
+    x_hat, sq, peak = x[:, 0], [], []
+    for i in range(v.shape[1]):
+        step = mlp_apply(layers, torch.cat([x_hat, v[:, i]], -1))
+        x_hat = x_hat + step if residual else step
+        err = x[:, i + 1] - x_hat
+        sq.append((err**2).sum(-1))
+        peak.append(err.abs().amax(-1))
+    return {
+        "prediction": torch.stack(sq, 1).mean(1).mean(),
+        "inf": torch.stack(peak, 1).mean(1).mean(),
+    }
+
+
+def dnn_step(
+    layers: Sequence[Dense],
+    x: torch.Tensor,
+    v: torch.Tensor,
+    weights: DNNLossWeights,
+    *,
+    residual: bool,
+) -> float:
+    """b_1 L_pred + b_2 L_inf, its gradient ADDED into the layers' grad views (BPTT by hand).
+
+    The same loss as :func:`dnn_loss_terms`, computed for speed: the input half of the first
+    layer (W_u v_i + b for every step) is one matmul; each step's activations are written into
+    time-major buffers; the backward pass through time only propagates d loss / d x_hat and
+    stores each layer's pre-activation gradients, so every weight gradient is one matmul over
+    all p steps at the end.
+    """
+    batch, p, n = x.shape[0], v.shape[1], x.shape[2]
+    m = v.shape[2]
+    x = x.transpose(0, 1)  # (p+1, B, n), time-major
+    first = layers[0]
+    w_x, w_u = first.weight[:, :n], first.weight[:, n:]
+    v_rows = v.transpose(0, 1).reshape(-1, m)
+    drive = torch.addmm(first.bias, v_rows, w_u.t()).view(p, batch, -1)  # W_u v_i + b
+    acts = [torch.empty(p, batch, layer.weight.shape[0]) for layer in layers]
+    fed = torch.empty(p, batch, n)  # x_hat fed to step i
+    x_hat = x[0]
+    for i in range(p):
+        fed[i] = x_hat
+        a = torch.addmm(drive[i], x_hat, w_x.t(), out=acts[0][i])
+        _activate_(a, first.activation)
+        for layer, out in zip(layers[1:], acts[1:], strict=True):
+            a = torch.addmm(layer.bias, a, layer.weight.t(), out=out[i])
+            _activate_(a, layer.activation)
+        x_hat = x_hat + a if residual else a
+    err = x[1:] - torch.cat([fed[1:], x_hat.unsqueeze(0)])  # predictions x_hat_1 .. x_hat_p
+    c_sq, c_inf = weights.prediction / (batch * p), weights.inf / (batch * p)
+    peak, where = err.abs().max(-1)
+    loss = c_sq * (err * err).sum() + c_inf * peak.sum()
+    grad_err = err * (-2.0 * c_sq)  # d loss / d x_hat_{i+1}
+    where = where.unsqueeze(-1)
+    grad_err.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
+    pre = [torch.empty_like(a) for a in acts]  # d loss / d pre-activation, per layer and step
+    carry = torch.zeros(batch, n)
+    for i in range(p - 1, -1, -1):
+        g = grad_err[i] + carry  # total d loss / d x_hat_{i+1}
+        top = g
+        for k in range(len(layers) - 1, -1, -1):
+            _activation_backward(g, acts[k][i], layers[k].activation, out=pre[k][i])
+            g = pre[k][i] @ (layers[k].weight if k else w_x)
+        carry = g + top if residual else g
+    inputs = [fed, *acts[:-1]]
+    for k, layer in enumerate(layers):
+        if layer.grad_weight is None:
+            continue
+        grad_rows = pre[k].view(-1, pre[k].shape[-1])
+        if k == 0:
+            layer.grad_weight[:, :n].addmm_(grad_rows.t(), fed.view(-1, n))
+            layer.grad_weight[:, n:].addmm_(grad_rows.t(), v_rows)
+        else:
+            layer.grad_weight.addmm_(grad_rows.t(), inputs[k].view(-1, inputs[k].shape[-1]))
+        if layer.grad_bias is not None:
+            layer.grad_bias.add_(grad_rows.sum(0))
+    return float(loss)
+
+
+def _activate_(a: torch.Tensor, activation: str) -> None:
+    if activation == "relu":
+        a.clamp_(min=0.0)
+    elif activation == "sigmoid":
+        a.sigmoid_()
+
+
+def _activation_backward(
+    g: torch.Tensor, y: torch.Tensor, activation: str, *, out: torch.Tensor
+) -> None:
+    """out = d loss / d pre-activation from g = d loss / d output y."""
+    if activation == "relu":
+        _threshold_backward(g, y, 0.0, grad_input=out)
+    elif activation == "sigmoid":
+        torch.mul(g, y * (1.0 - y), out=out)
+    else:
+        out.copy_(g)
+
+
+_threshold_backward = torch.ops.aten.threshold_backward.grad_input
+
+
+class _Objective:
+    """The DNN's loss for the training loop (learners.training.Objective)."""
+
+    def __init__(self, learner: DNN) -> None:
+        self.learner = learner
+        self.params = learner.params_
+        self.layers = self.params.layers("model")
+
+    def _layers(self, layer: Dense | None) -> list[Dense]:
+        return self.layers if layer is None else [*self.layers[:-1], layer, self.layers[-1]]
+
+    def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
+        learner = self.learner
+        loss = dnn_step(
+            self._layers(learner._step_layer(step)), x, v, learner.beta, residual=learner.residual
+        )
+        if learner.beta.l2:  # beta_3 ||theta||^2: gradient 2 beta_3 theta
+            self.params.grad.add_(self.params.data, alpha=2.0 * learner.beta.l2)
+        return loss
+
+    def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
+        with torch.no_grad():
+            terms = dnn_loss_terms(self.layers, x, v, residual=self.learner.residual)
+        beta = self.learner.beta
+        return batch_mean_terms(terms, {"prediction": beta.prediction, "inf": beta.inf})
+
+
+class DNN(TrainedLearner):
+    """The paper's DNN (see the module docstring).
+
+    Args:
+        hidden: Hidden widths (paper: 32, 64, 128, 128, 64, 32).
+        horizon: p, the steps of every training window.
+        beta: Loss weights prediction, inf, l2 (the paper's beta_1..3).
+        residual: Predict x_{k+1} - x_k instead of x_{k+1} (not in the paper; off by default).
+        random_layer: ``enabled``, ``std`` of the extra layer (before the output layer) redrawn
+            every step.
+        training: :class:`~learners.training.TrainingConfig` keys.
+    """
+
+    name: ClassVar[str] = "dnn"
+
+    def __init__(
+        self,
+        hidden: Sequence[int] = (32, 64, 128, 128, 64, 32),
+        horizon: int = 41,
+        beta: Mapping[str, float] | None = None,
+        residual: bool = False,
+        random_layer: Mapping[str, Any] | None = None,
+        training: Mapping[str, Any] | None = None,
+    ) -> None:
+        super().__init__(horizon=horizon, random_layer=random_layer, training=training)
+        self.hidden = [check_int("hidden", w, 1) for w in hidden]
+        if not self.hidden:
+            raise ValueError("learner.hidden must list at least one width (got [])")
+        self.beta = DNNLossWeights.from_config(beta)
+        self.residual = bool(residual)
+        self._random_layer_width = self.hidden[-1]
+        self._hyperparameters = {
+            "hidden": list(self.hidden),
+            "horizon": self.horizon,
+            "beta": asdict(self.beta),
+            "residual": self.residual,
+            "random_layer": asdict(self.random_layer),
+            "training": asdict(self.training),
+        }
+
+    def _specs(self, n: int, m: int) -> list[LayerSpec]:
+        return mlp_specs("model", [n + m, *self.hidden, n], "linear")
+
+    def _objective(self) -> _Objective:
+        return _Objective(self)
+
+    def _rollout_n(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> torch.Tensor:
+        layers = self.params_.layers("model")
+        if layer is not None:
+            layers = [*layers[:-1], layer, layers[-1]]
+        out = torch.empty(x0.shape[0], v.shape[1] + 1, x0.shape[1])
+        out[:, 0] = x_hat = x0
+        for k in range(v.shape[1]):
+            step = mlp_forward(layers, torch.cat([x_hat, v[:, k]], -1))[-1]
+            x_hat = x_hat + step if self.residual else step
+            out[:, k + 1] = x_hat
+        return out

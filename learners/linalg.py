@@ -1,0 +1,52 @@
+"""Least squares for [A B] that never forms W W^T: streamed QR (TSQR) with an optional ridge.
+
+The paper writes the EDMD solution as V W^T (W W^T)^+ (its eqs. for [A B] and C). Forming
+W W^T squares the condition number of the data matrix; with radial-basis observables it easily
+exceeds 1e12 and the pseudo-inverse then returns noise. Here the rows of [W | Y] are reduced by
+QR chunk by chunk (memory stays O(d^2) however long the data), and the small triangular system
+R11 Theta = R12 is solved by an SVD-based least squares, which gives the same minimum-norm
+solution as ``np.linalg.lstsq`` on the full data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+
+def ridge_lstsq(chunks: Iterable[tuple[np.ndarray, np.ndarray]], ridge: float = 0.0) -> np.ndarray:
+    """Theta minimizing (1/M) sum ||y_k - Theta^T w_k||^2 + ridge ||Theta||_F^2.
+
+    Args:
+        chunks: (W, Y) row blocks, W (k, d) regressors and Y (k, q) targets; M rows in all.
+        ridge: Tikhonov weight, relative to the mean squared residual (so its meaning does not
+            change with the amount of data).
+
+    Returns:
+        Theta (d, q), float64.
+    """
+    r: np.ndarray | None = None
+    count = 0
+    d = q = 0
+    for w, y in chunks:
+        w = np.asarray(w, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        d, q = w.shape[1], y.shape[1]
+        block = np.hstack([w, y])
+        count += len(block)
+        r = np.linalg.qr(block if r is None else np.vstack([r, block]), mode="r")
+    if r is None or count == 0:
+        raise ValueError("least squares on zero samples")
+    if ridge > 0:
+        penalty = np.hstack([np.sqrt(ridge * count) * np.eye(d), np.zeros((d, q))])
+        r = np.linalg.qr(np.vstack([r, penalty]), mode="r")
+    if r.shape[0] < d + q:  # fewer samples than unknowns: pad R with zero rows
+        r = np.vstack([r, np.zeros((d + q - r.shape[0], d + q))])
+    theta, *_ = np.linalg.lstsq(r[:d, :d], r[:d, d:], rcond=None)
+    return theta
+
+
+def row_chunks(a: np.ndarray, size: int) -> Iterable[slice]:
+    """Slices cutting ``len(a)`` rows into blocks of at most ``size``."""
+    return (slice(i, min(i + size, len(a))) for i in range(0, len(a), size))

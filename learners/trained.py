@@ -1,0 +1,171 @@
+"""Plumbing shared by the learners trained by gradient descent (DNN, Deep EDMD)."""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+import torch
+
+from harness.data.episode import Episode, MinMaxNormalizer
+from harness.recorder import Recorder
+from learners.base import Learner, check_episodes, check_int, check_rollout_args
+from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
+from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, train
+from learners.windows import WindowData
+
+__all__ = ["TrainedLearner"]
+
+# Settings that may change between a run and its resumption without changing the result.
+_RESUMABLE = (
+    "max_steps",
+    "max_epochs",
+    "patience",
+    "progress",
+    "num_threads",
+    "checkpoint_every_steps",
+)
+
+
+class TrainedLearner(Learner):
+    """Windows, training loop, checkpoints and the batched, seeded-random-layer ``predict``.
+
+    Fitted attributes: ``params_`` (:class:`~learners.nets.FlatParameters`), ``history_``
+    (:class:`~learners.training.History`), ``normalizer_``.
+    """
+
+    params_: FlatParameters
+    history_: History
+
+    def __init__(
+        self,
+        *,
+        horizon: int,
+        random_layer: Mapping[str, Any] | None,
+        training: Mapping[str, Any] | None,
+    ) -> None:
+        self.horizon = check_int("horizon", horizon, 1)
+        self.random_layer = RandomLayerConfig.from_config(random_layer)
+        self.training = TrainingConfig.from_config(training)
+
+    # -- subclass hooks --------------------------------------------------------------------------
+
+    @abstractmethod
+    def _specs(self, n: int, m: int) -> list[LayerSpec]:
+        """The :class:`~learners.nets.LayerSpec` list of every trained tensor."""
+
+    @abstractmethod
+    def _objective(self) -> Objective:
+        """The loss the training loop minimizes, bound to ``params_``."""
+
+    def _after_training(self, train: Sequence[Episode]) -> None:
+        """Set the remaining fitted attributes once ``params_`` hold the trained weights."""
+
+    @abstractmethod
+    def _rollout_n(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> torch.Tensor:
+        """Normalized rollout: x0 (R, n), v (R, T, m) float32 -> (R, T + 1, n)."""
+
+    _random_layer_width: int
+
+    # -- the contract ----------------------------------------------------------------------------
+
+    def fit(
+        self,
+        train: Sequence[Episode],
+        validation: Sequence[Episode],
+        normalizer: MinMaxNormalizer,
+        *,
+        recorder: Recorder | None = None,
+        output_dir: Path | None = None,
+    ) -> Self:
+        """Train on windows of ``train``; early-stop on ``validation``; resume from output_dir."""
+        check_episodes(train, "train", normalizer)
+        if validation:
+            check_episodes(validation, "validation", normalizer)
+        self.normalizer_ = normalizer
+        n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
+        self._build(n, m)
+        generator = torch.Generator().manual_seed(self.training.seed)
+        self.params_.initialize(generator)
+        fingerprint = self.hyperparameters
+        fingerprint["training"] = {
+            k: v for k, v in fingerprint["training"].items() if k not in _RESUMABLE
+        }
+        self.history_ = train_loop(
+            self.name,
+            self._objective(),
+            WindowData.from_episodes(train, normalizer),
+            WindowData.from_episodes(validation, normalizer) if validation else None,
+            self.horizon,
+            self.training,
+            fingerprint={"hyperparameters": fingerprint},
+            output_dir=Path(output_dir) if output_dir is not None else None,
+            recorder=recorder,
+        )
+        self._after_training(train)
+        return self
+
+    def predict(
+        self, x0: np.ndarray, inputs: np.ndarray, *, random_layer_seed: int | None = None
+    ) -> np.ndarray:
+        """Open-loop rollout (see :meth:`Learner.predict`).
+
+        Args:
+            x0: (..., 3) initial states.
+            inputs: (..., T, 2) inputs.
+            random_layer_seed: None uses the nominal random layer (the identity, i.e. the
+                network as trained without the noise); an integer draws one random layer per
+                batch row from that seed (the paper's repeated predictions).
+        """
+        norm = self.normalizer_
+        n, m = norm.state_min.shape[0], norm.input_min.shape[0]
+        x0, inputs = check_rollout_args(x0, inputs, n, m)
+        batch, steps = x0.shape[:-1], inputs.shape[-2]
+        x0n = torch.from_numpy(norm.states(x0).reshape(-1, n).astype(np.float32))
+        vn = torch.from_numpy(norm.inputs(inputs).reshape(-1, steps, m).astype(np.float32))
+        layer = None
+        if random_layer_seed is not None:
+            if not self.random_layer.enabled:
+                raise ValueError(
+                    f"{self.name} has no random layer (learner.random_layer.enabled is false)"
+                )
+            layer = random_layer(
+                self._random_layer_width,
+                self.random_layer.std,
+                torch.Generator().manual_seed(int(random_layer_seed)),
+                rows=x0n.shape[0],
+            )
+        with torch.inference_mode():
+            xn = self._rollout_n(x0n, vn, layer).double().numpy()
+        with np.errstate(over="ignore", invalid="ignore"):
+            x = norm.states_inverse(xn).reshape(*batch, steps + 1, n)
+        x[..., 0, :] = x0
+        return x
+
+    # -- helpers ---------------------------------------------------------------------------------
+
+    def _build(self, n: int, m: int) -> None:
+        self.params_ = FlatParameters(self._specs(n, m))
+
+    def _step_layer(self, step: int) -> Dense | None:
+        """The random layer of training step ``step`` (None when disabled)."""
+        if not self.random_layer.enabled:
+            return None
+        generator = torch.Generator().manual_seed(self.training.seed * 1_000_003 + step)
+        return random_layer(self._random_layer_width, self.random_layer.std, generator)
+
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
+        return {"params": self.params_.data.clone()}
+
+    def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
+        norm = self.normalizer_
+        self._build(norm.state_min.shape[0], norm.input_min.shape[0])
+        if state["params"].shape != self.params_.data.shape:
+            raise ValueError(f"{self.name} file does not match its hyperparameters")
+        self.params_.data.copy_(state["params"])
+
+
+train_loop = train

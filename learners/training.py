@@ -1,0 +1,473 @@
+"""Mini-batch training shared by the DNN and Deep EDMD: Adam, early stopping, checkpoints, curves.
+
+What the loop guarantees:
+
+- **Deterministic on CPU for a seed.** Initial weights come from ``seed``; the windows of epoch
+  e from ``numpy.random.default_rng([seed, e])``; the random layer of step s from
+  ``torch.Generator().manual_seed(seed * 1_000_003 + s)``. Nothing depends on global RNG state.
+- **Resumable.** Every ``checkpoint_every_steps`` the parameters, Adam's state, the position in
+  the epoch and the early-stopping state go to ``<output_dir>/<name>.ckpt`` (atomically). A new
+  ``fit`` with the same hyperparameters and data continues from it and ends exactly where an
+  uninterrupted run ends; ``max_steps``, ``max_epochs``, ``patience`` may be raised to extend a
+  finished run. Other data or hyperparameters refuse the checkpoint in one line.
+- **Never a silent NaN model.** A non-finite loss stops training with a one-line RuntimeError.
+- **Early stopping** on the validation loss every ``eval_every_steps``; the returned model is the
+  best one seen (the last one when there is no validation data).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import hashlib
+import json
+import math
+import os
+from collections.abc import Iterator, Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from harness.recorder import Recorder
+from learners.base import check, check_int, check_nonnegative, check_positive
+from learners.nets import FlatParameters
+from learners.windows import WindowData
+
+__all__ = [
+    "History",
+    "Objective",
+    "RandomLayerConfig",
+    "TrainingConfig",
+    "batch_mean_terms",
+    "plot_loss_curves",
+    "train",
+]
+
+VALIDATION_CHUNK = 1024  # windows per validation forward pass
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Optimizer and budget of a trained learner (``learner.training.*`` in the config).
+
+    Paper values: Adam, lr 1e-4, batch 64, ~1e5 batches. ``max_epochs`` None means no epoch
+    limit; at least one of ``max_steps`` / ``max_epochs`` must be set. ``num_threads`` None uses
+    every core this process may run on.
+    """
+
+    batch_size: int = 64
+    lr: float = 1e-4
+    max_steps: int | None = 100_000
+    max_epochs: int | None = None
+    patience: int = 20
+    eval_every_steps: int = 1000
+    checkpoint_every_steps: int = 1000
+    seed: int = 0
+    num_threads: int | None = None
+    progress: bool = True
+
+    @classmethod
+    def from_config(cls, values: Mapping[str, Any] | None) -> TrainingConfig:
+        values = dict(values or {})
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"learner.training.{sorted(unknown)[0]} is not a training setting")
+        config = cls(**values)
+        key = "training."
+        check_int(key + "batch_size", config.batch_size, 1)
+        check_positive(key + "lr", config.lr)
+        if config.max_steps is not None:
+            check_int(key + "max_steps", config.max_steps, 1)
+        if config.max_epochs is not None:
+            check_int(key + "max_epochs", config.max_epochs, 1)
+        check(
+            config.max_steps is not None or config.max_epochs is not None,
+            key + "max_steps",
+            "set when training.max_epochs is null",
+            config.max_steps,
+        )
+        check_int(key + "patience", config.patience, 1)
+        check_int(key + "eval_every_steps", config.eval_every_steps, 1)
+        check_int(key + "checkpoint_every_steps", config.checkpoint_every_steps, 1)
+        check_int(key + "seed", config.seed, 0)
+        if config.num_threads is not None:
+            check_int(key + "num_threads", config.num_threads, 1)
+        return config
+
+
+@dataclass(frozen=True)
+class RandomLayerConfig:
+    """The paper's robustness experiment: an extra hidden layer redrawn at every training step.
+
+    W ~ I + N(0, std^2), b ~ N(0, std^2), then a ReLU (see :func:`learners.nets.random_layer`).
+    """
+
+    enabled: bool = False
+    std: float = 0.1
+
+    @classmethod
+    def from_config(cls, values: Mapping[str, Any] | None) -> RandomLayerConfig:
+        values = dict(values or {})
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"learner.random_layer.{sorted(unknown)[0]} is not a setting")
+        config = cls(**values)
+        check(
+            isinstance(config.enabled, bool),
+            "random_layer.enabled",
+            "true or false",
+            config.enabled,
+        )
+        check_nonnegative("random_layer.std", config.std)
+        return config
+
+
+class Objective(Protocol):
+    """What a trained learner gives the loop: parameters, a gradient step, a validation loss."""
+
+    params: FlatParameters
+
+    def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
+        """Loss of windows x (B, p+1, n), v (B, p, m); its gradient ADDED to ``params.grad``."""
+        ...
+
+    def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
+        """Batch-mean loss terms of windows (nominal random layer); key ``loss`` is monitored."""
+        ...
+
+
+@dataclass
+class History:
+    """Loss curves: one entry per evaluation (every ``eval_every_steps`` and at the end)."""
+
+    step: list[int]
+    epoch: list[int]
+    train: list[float]
+    validation: list[dict[str, float]]
+    stopped: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def train(
+    name: str,
+    objective: Objective,
+    train_data: WindowData,
+    validation_data: WindowData | None,
+    horizon: int,
+    config: TrainingConfig,
+    *,
+    fingerprint: Mapping[str, Any],
+    output_dir: Path | None = None,
+    recorder: Recorder | None = None,
+) -> History:
+    """Train ``objective.params`` in place with Adam; leaves the best parameters in them."""
+    train_starts = train_data.window_starts(horizon)
+    if len(train_starts) == 0:
+        raise ValueError(
+            f"learner.horizon ({horizon}) is longer than every training episode (no window fits)"
+        )
+    val_starts = (
+        validation_data.window_starts(horizon) if validation_data is not None else np.zeros(0)
+    )
+    params = objective.params
+    flat = torch.nn.Parameter(params.data)  # shares storage with params.data and its views
+    flat.grad = params.grad
+    optimizer = torch.optim.Adam([flat], lr=config.lr, fused=True)
+    fingerprint = {
+        "learner": name,
+        **fingerprint,
+        "train": train_data.fingerprint(),
+        "validation": validation_data.fingerprint() if validation_data is not None else None,
+    }
+    checkpoint_path = output_dir / f"{name}.ckpt" if output_dir is not None else None
+    state = _State.fresh()
+    if checkpoint_path is not None and checkpoint_path.exists():
+        state = _State.load(checkpoint_path, fingerprint, params, optimizer)
+
+    def validation_loss() -> dict[str, float]:
+        totals: dict[str, float] = {}
+        for i in range(0, len(val_starts), VALIDATION_CHUNK):
+            chunk = val_starts[i : i + VALIDATION_CHUNK]
+            x, v = validation_data.gather(chunk, horizon)
+            for key, value in objective.validate(x, v).items():
+                totals[key] = totals.get(key, 0.0) + value * len(chunk)
+        return {k: v / len(val_starts) for k, v in totals.items()}
+
+    def save_checkpoint() -> None:
+        if checkpoint_path is not None:
+            state.save(checkpoint_path, fingerprint, params, optimizer)
+
+    def budget_left() -> bool:
+        if config.max_steps is not None and state.step >= config.max_steps:
+            return False
+        return config.max_epochs is None or state.epoch < config.max_epochs
+
+    with (
+        _torch_threads(config.num_threads),
+        tqdm(
+            total=config.max_steps,
+            initial=state.step,
+            desc=name,
+            unit="batch",
+            disable=not config.progress,
+            mininterval=1.0,
+        ) as bar,
+    ):
+        while budget_left() and not state.stopped:
+            rng = np.random.default_rng([config.seed, state.epoch])
+            offsets = rng.integers(0, horizon + 1, len(train_data.episode_lengths))
+            starts = train_data.window_starts(horizon, offsets)
+            order = rng.permutation(len(starts))
+            batch = min(config.batch_size, len(starts))
+            n_batches = len(starts) // batch  # the last partial batch is dropped
+            for b in range(state.batch_in_epoch, n_batches):
+                x, v = train_data.gather(starts[order[b * batch : (b + 1) * batch]], horizon)
+                params.grad.zero_()
+                loss = objective.train_step(x, v, state.step)
+                if not math.isfinite(loss):
+                    raise RuntimeError(
+                        f"{name} training diverged at step {state.step} (loss = {loss}); "
+                        f"lower learner.training.lr or check the data"
+                    )
+                optimizer.step()
+                state.step += 1
+                state.batch_in_epoch = b + 1
+                state.train_sum += loss
+                state.train_count += 1
+                bar.update(1)
+                if state.step % config.eval_every_steps == 0:
+                    state.evaluate(validation_loss() if len(val_starts) else {}, params, config)
+                    bar.set_postfix(state.postfix(), refresh=False)
+                if state.step % config.checkpoint_every_steps == 0:
+                    save_checkpoint()
+                if state.stopped or not budget_left():
+                    break
+            else:
+                state.epoch += 1
+                state.batch_in_epoch = 0
+        if state.train_count or not state.history.step:  # evaluate the last, off-grid steps
+            final = _State.from_state(state)
+            final.evaluate(validation_loss() if len(val_starts) else {}, params, config)
+            history = final.history
+            best = final.best_params
+        else:
+            history, best = state.history, state.best_params
+        if not state.stopped:
+            history.stopped = (
+                "max_steps"
+                if config.max_steps is not None and state.step >= config.max_steps
+                else "max_epochs"
+            )
+        save_checkpoint()
+    if best is not None and len(val_starts):
+        params.data.copy_(best)
+    if recorder is not None and history.step:
+        _record(recorder, name, history)
+    if output_dir is not None and history.step:
+        plot_loss_curves(history, output_dir / f"{name}_loss.png", title=name)
+    return history
+
+
+@dataclass
+class _State:
+    """Everything a resumed run needs besides parameters and Adam's moments."""
+
+    step: int
+    epoch: int
+    batch_in_epoch: int
+    train_sum: float
+    train_count: int
+    best_loss: float
+    evals_since_best: int
+    best_params: torch.Tensor | None
+    history: History
+    stopped: str = ""
+
+    @classmethod
+    def fresh(cls) -> _State:
+        return cls(0, 0, 0, 0.0, 0, math.inf, 0, None, History([], [], [], []))
+
+    @classmethod
+    def from_state(cls, other: _State) -> _State:
+        """A copy that can be evaluated once more without touching the resumable state."""
+        h = other.history
+        history = History([*h.step], [*h.epoch], [*h.train], [*h.validation], h.stopped)
+        best = None if other.best_params is None else other.best_params.clone()
+        return cls(**{**other.__dict__, "history": history, "best_params": best})
+
+    def evaluate(
+        self, validation: dict[str, float], params: FlatParameters, config: TrainingConfig
+    ) -> None:
+        train_loss = self.train_sum / self.train_count if self.train_count else math.nan
+        self.history.step.append(self.step)
+        self.history.epoch.append(self.epoch)
+        self.history.train.append(train_loss)
+        self.history.validation.append(validation)
+        self.train_sum, self.train_count = 0.0, 0
+        if not validation:
+            return
+        loss = validation["loss"]
+        if not math.isfinite(loss):
+            raise RuntimeError(f"validation loss is {loss} at step {self.step}: training diverged")
+        if loss < self.best_loss:
+            self.best_loss, self.evals_since_best = loss, 0
+            self.best_params = params.data.clone()
+        else:
+            self.evals_since_best += 1
+            if self.evals_since_best >= config.patience:
+                self.stopped = self.history.stopped = "early_stopping"
+
+    def postfix(self) -> dict[str, str]:
+        out = {"train": f"{self.history.train[-1]:.3g}"}
+        if self.history.validation[-1]:
+            out["val"] = f"{self.history.validation[-1]['loss']:.3g}"
+        return out
+
+    def save(
+        self,
+        path: Path,
+        fingerprint: Mapping[str, Any],
+        params: FlatParameters,
+        optimizer: torch.optim.Optimizer,
+    ) -> None:
+        payload = {
+            "fingerprint": _digest(fingerprint),
+            "params": params.data.clone(),
+            "optimizer": optimizer.state_dict(),
+            "state": {k: v for k, v in self.__dict__.items() if k not in ("best_params",)},
+            "best_params": self.best_params,
+        }
+        payload["state"]["history"] = self.history.to_dict()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(
+        cls,
+        path: Path,
+        fingerprint: Mapping[str, Any],
+        params: FlatParameters,
+        optimizer: torch.optim.Optimizer,
+    ) -> _State:
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception:  # a torn or foreign file: say so in one line
+            raise ValueError(
+                f"{path} is not a readable checkpoint; remove it to start over"
+            ) from None
+        if payload.get("fingerprint") != _digest(fingerprint):
+            raise ValueError(
+                f"{path} was written for other data or hyperparameters; "
+                f"remove it or use another output directory"
+            )
+        params.data.copy_(payload["params"])
+        optimizer.load_state_dict(payload["optimizer"])
+        values = dict(payload["state"])
+        values["history"] = History(**values["history"])
+        return cls(**values, best_params=payload["best_params"])
+
+
+def _digest(fingerprint: Mapping[str, Any]) -> str:
+    return hashlib.sha1(json.dumps(fingerprint, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _record(recorder: Recorder, name: str, history: History) -> None:
+    steps = np.asarray(history.step, dtype=np.int64)
+    values = {"train": np.asarray(history.train, dtype=float)}
+    keys = sorted({k for v in history.validation for k in v})
+    for key in keys:
+        label = "validation" if key == "loss" else f"validation_{key}"
+        values[label] = np.array([v.get(key, np.nan) for v in history.validation])
+    recorder.series(f"training/{name}", steps, values, timeline="step")
+
+
+def plot_loss_curves(history: History, path: Path, title: str = "") -> Path:
+    """Training (solid) and validation (dashed) loss per batch, log scale, as in the paper."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(history.step, history.train, "-", color="C0", label="training loss")
+    if any(history.validation):
+        ax.plot(
+            history.step,
+            [v.get("loss", np.nan) for v in history.validation],
+            "--",
+            color="C0",
+            label="validation loss",
+        )
+        terms = sorted({k for v in history.validation for k in v} - {"loss"})
+        for i, key in enumerate(terms, start=1):
+            ax.plot(
+                history.step,
+                [v.get(key, np.nan) for v in history.validation],
+                "--",
+                color=f"C{i}",
+                lw=0.8,
+                label=f"validation {key}",
+            )
+    ax.set_yscale("log")
+    ax.set_xlabel("batches")
+    ax.set_ylabel("loss (normalized units)")
+    ax.set_title(f"{title} ({history.stopped})" if history.stopped else title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+@contextlib.contextmanager
+def _torch_threads(count: int | None) -> Iterator[None]:
+    """Run with ``count`` intra-op threads (default: the cores available), then restore."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count or len(os.sched_getaffinity(0)))
+    _keep_freed_memory()
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+_MALLOC_TUNED = False
+
+
+def _keep_freed_memory() -> None:
+    """Keep freed blocks in glibc's heap instead of returning them to the OS.
+
+    Each training step allocates and frees the same few-MB activation buffers; by default glibc
+    serves them with mmap and unmaps them on free, so every step pays page faults on fresh pages
+    (about 25 % of a Deep EDMD step here). Raising the mmap and trim thresholds makes freed
+    blocks reusable, as jemalloc/tcmalloc would. Process-wide and permanent; no-op off glibc.
+    """
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED:
+        return
+    _MALLOC_TUNED = True
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3
+        libc.mallopt(m_mmap_threshold, 1 << 30)
+        libc.mallopt(m_trim_threshold, (1 << 31) - 1)
+        libc.mallopt(m_top_pad, 64 << 20)
+
+
+def batch_mean_terms(
+    terms: Mapping[str, torch.Tensor], weights: Mapping[str, float]
+) -> dict[str, float]:
+    """Floats of the loss terms plus ``loss``, their weighted sum (what validation monitors)."""
+    out = {k: float(v) for k, v in terms.items()}
+    out["loss"] = sum(weights[k] * out[k] for k in weights)
+    return out

@@ -1,0 +1,155 @@
+"""EDMD and ELM-EDMD against analytic truth: exact A, B on linear systems; the MPC's contract."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from harness.data.episode import Episode, MinMaxNormalizer
+from learners import EDMD, ELMEDMD, DeepEDMD
+from learners.linalg import ridge_lstsq
+from learners.toydata import drive_episodes
+
+# A lightly damped, coupled 3-state system in normalized coordinates, driven by 2 inputs.
+A_TRUE = np.array([[0.95, 0.10, 0.00], [-0.10, 0.90, 0.05], [0.02, 0.00, 0.80]])
+B_TRUE = np.array([[0.05, 0.00], [0.00, 0.10], [0.03, -0.02]])
+NORMALIZER = MinMaxNormalizer(
+    state_min=np.array([0.0, -2.0, -1.0]),
+    state_max=np.array([30.0, 2.0, 1.0]),
+    input_min=np.array([-450.0, -1.0]),
+    input_max=np.array([450.0, 1.0]),
+)
+
+
+def linear_episodes(count: int = 4, steps: int = 400, seed: int = 0) -> list[Episode]:
+    """z_{k+1} = A z_k + B v_k in normalized coordinates, written out in physical units.
+
+    Inputs are drawn in the normalized input space and mapped back with ``inputs_inverse``, so
+    the system is exactly linear in what the learners see (the pedal's two slopes included).
+    """
+    rng = np.random.default_rng(seed)
+    episodes = []
+    for k in range(count):
+        z = np.empty((steps, 3))
+        v = rng.uniform(0.0, 1.0, (steps, 2))
+        z[0] = rng.uniform(0.0, 1.0, 3)
+        for t in range(steps - 1):
+            z[t + 1] = A_TRUE @ z[t] + B_TRUE @ v[t]
+        episodes.append(
+            Episode(
+                f"linear_{k}",
+                np.arange(steps) * 0.01,
+                NORMALIZER.states_inverse(z),
+                NORMALIZER.inputs_inverse(v),
+                np.zeros((steps, 3)),
+            )
+        )
+    return episodes
+
+
+def test_edmd_with_the_identity_lift_recovers_a_and_b_exactly() -> None:
+    model = EDMD(num_centers=0, include_constant=False, ridge=0.0)
+    model.fit(linear_episodes(), [], NORMALIZER)
+    np.testing.assert_allclose(model.A_, A_TRUE, atol=1e-9)
+    np.testing.assert_allclose(model.B_, B_TRUE, atol=1e-9)
+    np.testing.assert_array_equal(model.C_, np.eye(3))
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: EDMD(num_centers=20, ridge=0.0),
+        lambda: ELMEDMD(num_features=20, ridge=0.0),
+    ],
+    ids=["edmd", "elm_edmd"],
+)
+def test_with_x_in_the_lift_the_state_rows_are_exact_and_ignore_the_observables(make) -> None:
+    """z = [x; 1; phi(x)]: x's own rows of [A B] are the true ones, zero on 1 and phi."""
+    model = make().fit(linear_episodes(), [], NORMALIZER)
+    size = model.A_.shape[0]
+    assert size == 3 + 1 + 20
+    np.testing.assert_allclose(model.A_[:3, :3], A_TRUE, atol=1e-6)
+    np.testing.assert_allclose(model.A_[:3, 3:], 0.0, atol=1e-6)
+    np.testing.assert_allclose(model.B_[:3], B_TRUE, atol=1e-6)
+    np.testing.assert_array_equal(model.C_, np.eye(3, size))
+    # the constant observable is propagated exactly
+    np.testing.assert_allclose(model.A_[3], np.eye(size)[3], atol=1e-8)
+
+
+def test_a_linear_plant_in_physical_units_is_recovered_through_the_constant_observable() -> None:
+    """x_{k+1} = A x_k + B u_k (physical) is affine after min-max scaling: the 1 absorbs it."""
+    rng = np.random.default_rng(1)
+    a = np.array([[0.99, 0.0, 0.0], [0.0, 0.9, 0.05], [0.0, -0.05, 0.9]])
+    b = np.array([[0.0, 0.5], [0.002, 0.0], [0.001, 0.0]])
+    episodes = []
+    for k in range(3):
+        u = np.c_[rng.uniform(-90, 90, 300), rng.uniform(0.0, 0.2, 300)]  # throttle: one slope
+        x = np.zeros((300, 3))
+        x[0] = rng.uniform(-1, 1, 3)
+        for t in range(299):
+            x[t + 1] = a @ x[t] + b @ u[t]
+        episodes.append(Episode(f"plant_{k}", np.arange(300) * 0.01, x, u, np.zeros((300, 3))))
+    normalizer = MinMaxNormalizer.fit(episodes)
+    model = EDMD(num_centers=0, ridge=0.0).fit(episodes, [], normalizer)
+    x0, inputs = episodes[0].states[0], episodes[0].inputs[:-1]
+    np.testing.assert_allclose(model.predict(x0, inputs), episodes[0].states, atol=1e-8)
+
+
+def test_the_thin_plate_spline_observable_is_r2_log_r() -> None:
+    model = EDMD(num_centers=1)
+    model.centers_ = np.array([[0.2, 0.3, 0.4]])
+    r = np.array([0.0, 0.5, 1.0, np.exp(0.5)])
+    x = model.centers_ + r[:, None] * np.array([0.0, 0.6, 0.8])  # unit direction
+    expected = np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0)
+    np.testing.assert_allclose(model._observables(x)[:, 0], expected, atol=1e-12)
+
+
+def test_ridge_lstsq_in_chunks_equals_lstsq_and_the_closed_form_ridge() -> None:
+    rng = np.random.default_rng(0)
+    w, y = rng.standard_normal((1000, 8)), rng.standard_normal((1000, 3))
+    chunks = [(w[i : i + 128], y[i : i + 128]) for i in range(0, 1000, 128)]
+    np.testing.assert_allclose(
+        ridge_lstsq(chunks, 0.0), np.linalg.lstsq(w, y, rcond=None)[0], atol=1e-10
+    )
+    ridge = 0.1
+    closed = np.linalg.solve(w.T @ w + ridge * 1000 * np.eye(8), w.T @ y)
+    np.testing.assert_allclose(ridge_lstsq(chunks, ridge), closed, atol=1e-10)
+
+
+def test_ridge_lstsq_stays_exact_where_the_normal_equations_square_the_conditioning() -> None:
+    """cond(W) = 1e7, so cond(W^T W) = 1e14: noise-free data still gives the exact answer."""
+    rng = np.random.default_rng(0)
+    q, _ = np.linalg.qr(rng.standard_normal((500, 6)))
+    w = q @ np.diag(np.logspace(0, -7, 6)) @ np.linalg.qr(rng.standard_normal((6, 6)))[0]
+    theta = rng.standard_normal((6, 2))
+    np.testing.assert_allclose(ridge_lstsq([(w, w @ theta)]), theta, rtol=1e-6, atol=1e-6)
+
+
+def test_koopman_learners_honour_the_mpc_contract() -> None:
+    """predict == iterating z+ = A z + B inputs(u) from lift(x0), x = states_inverse(C z)."""
+    episodes = drive_episodes(3, 20.0)
+    normalizer = MinMaxNormalizer.fit(episodes)
+    models = [
+        EDMD(num_centers=20).fit(episodes, [], normalizer),
+        ELMEDMD(num_features=20).fit(episodes, [], normalizer),
+        DeepEDMD(
+            horizon=5, prediction_output="linear", training={"max_steps": 20, "progress": False}
+        ).fit(episodes, [], normalizer),
+        DeepEDMD(
+            horizon=5,
+            lifted_includes_state=False,
+            prediction_output="linear",
+            training={"max_steps": 20, "progress": False},
+        ).fit(episodes, [], normalizer),
+    ]
+    x0, inputs = episodes[0].states[300], episodes[0].inputs[300:400]
+    for model in models:
+        z = model.lift(x0)
+        assert z.shape == (model.A_.shape[0],) and model.B_.shape == (z.size, 2)
+        if model.C_.shape[1] > 3 and np.array_equal(model.C_, np.eye(3, z.size)):
+            np.testing.assert_allclose(z[:3], normalizer.states(x0), atol=1e-6)
+        expected = [x0]
+        for u in inputs:
+            z = model.A_ @ z + model.B_ @ normalizer.inputs(u)
+            expected.append(normalizer.states_inverse(model.C_ @ z))
+        np.testing.assert_allclose(model.predict(x0, inputs), expected, rtol=1e-6, atol=1e-6)

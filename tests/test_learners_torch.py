@@ -1,0 +1,321 @@
+"""DNN and Deep EDMD: losses by hand, the fast gradients, and the training loop's guarantees."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from harness.data.episode import MinMaxNormalizer
+from harness.recorder import Recorder
+from learners import DNN, DeepEDMD
+from learners.deep_edmd import LossWeights, deep_edmd_loss_terms, deep_edmd_step
+from learners.dnn import DNNLossWeights, dnn_loss_terms, dnn_step
+from learners.nets import Dense
+from learners.toydata import drive_episodes
+from learners.training import History, TrainingConfig, _State
+from learners.windows import WindowData
+
+
+def sigmoid(a: float) -> float:
+    return 1.0 / (1.0 + math.exp(-a))
+
+
+def tensor(*values) -> torch.Tensor:
+    return torch.tensor(values, dtype=torch.float32)
+
+
+@pytest.fixture(scope="module")
+def data() -> dict:
+    episodes = drive_episodes(4, 20.0, first_seed=10)
+    train, validation = episodes[:3], episodes[3:]
+    return {"train": train, "validation": validation, "normalizer": MinMaxNormalizer.fit(train)}
+
+
+def small(cls, **overrides):
+    """A learner small and short enough to fit in well under a second."""
+    training = {
+        "max_steps": 30,
+        "batch_size": 16,
+        "lr": 3e-3,
+        "eval_every_steps": 10,
+        "checkpoint_every_steps": 5,
+        "progress": False,
+        **overrides.pop("training", {}),
+    }
+    if cls is DNN:
+        return DNN(hidden=[16, 16], horizon=8, training=training, **overrides)
+    return DeepEDMD(
+        lifted_dim=4,
+        encoder_hidden=[16],
+        decoder_hidden=[16],
+        horizon=8,
+        training=training,
+        **overrides,
+    )
+
+
+# -- losses against hand computation ------------------------------------------------------------
+
+
+def test_deep_edmd_losses_match_a_hand_computed_case() -> None:
+    """n = m = L = 1, p = 2: phi(x) = 2 relu(x), z = [x, 2x], dec(z) = sigmoid(z_1)."""
+    encoder = [
+        Dense(tensor([1.0]).view(1, 1), tensor(0.0), "relu"),
+        Dense(tensor([2.0]).view(1, 1), tensor(0.0), "linear"),
+    ]
+    decoder = [Dense(tensor([1.0, 0.0]).view(1, 2), tensor(0.0), "sigmoid")]
+    a = torch.tensor([[1.0, 0.0], [0.0, 0.5]])
+    b = torch.tensor([[0.1], [0.2]])
+    x = tensor(0.5, 0.6, 0.8).view(1, 3, 1)
+    v = tensor(1.0, -1.0).view(1, 2, 1)
+    # K^1 z0 = [0.5 + 0.1, 0.5 + 0.2] = [0.6, 0.7];  K^2 z0 = [0.6 - 0.1, 0.35 - 0.2] = [0.5, 0.15]
+    # z1 = [0.6, 1.2], z2 = [0.8, 1.6]
+    recon = [0.6 - sigmoid(0.6), 0.8 - sigmoid(0.8)]
+    pred = [0.6 - sigmoid(0.6), 0.8 - sigmoid(0.5)]
+    expected = {
+        "ox": (recon[0] ** 2 + recon[1] ** 2) / 2,
+        "xx": (pred[0] ** 2 + pred[1] ** 2) / 2,
+        "xo": ((0.0**2 + 0.5**2) + (0.3**2 + 1.45**2)) / 2,
+        "inf": (abs(recon[0]) + abs(recon[1])) / 2 + (abs(pred[0]) + abs(pred[1])) / 2,
+    }
+    terms = deep_edmd_loss_terms(encoder, decoder, a, b, x, v, lifted_includes_state=True)
+    for key, value in expected.items():
+        assert float(terms[key]) == pytest.approx(value, rel=1e-6), key
+    weights = LossWeights(ox=1.0, xx=2.0, xo=0.3, inf=0.5)
+    total = sum(getattr(weights, k) * v for k, v in expected.items())
+    grads = {"grad_a": torch.zeros(2, 2), "grad_b": torch.zeros(2, 1)}
+    loss = deep_edmd_step(
+        encoder, decoder, a, b, **grads, x=x, v=v, weights=weights, lifted_includes_state=True
+    )
+    assert loss == pytest.approx(total, rel=1e-6)
+
+
+@pytest.mark.parametrize("residual", [False, True])
+def test_dnn_loss_matches_a_hand_computed_case(residual: bool) -> None:
+    """M(x, u) = 0.5 relu(x + u) + 0.1 on x = [0.2, 0.4, 0.3], u = [0.4, -1.0]."""
+    layers = [
+        Dense(tensor(1.0, 1.0).view(1, 2), tensor(0.0), "relu"),
+        Dense(tensor(0.5).view(1, 1), tensor(0.1), "linear"),
+    ]
+    x = tensor(0.2, 0.4, 0.3).view(1, 3, 1)
+    v = tensor(0.4, -1.0).view(1, 2, 1)
+    # plain: x1 = 0.5 * 0.6 + 0.1 = 0.4, x2 = 0.5 * relu(-0.6) + 0.1 = 0.1 -> errors 0, 0.2
+    # residual: x1 = 0.2 + 0.4 = 0.6, x2 = 0.6 + 0.5 * relu(-0.4) + 0.1 = 0.7 -> -0.2, -0.4
+    errors = [-0.2, -0.4] if residual else [0.0, 0.2]
+    terms = dnn_loss_terms(layers, x, v, residual=residual)
+    assert float(terms["prediction"]) == pytest.approx((errors[0] ** 2 + errors[1] ** 2) / 2)
+    assert float(terms["inf"]) == pytest.approx((abs(errors[0]) + abs(errors[1])) / 2)
+    loss = dnn_step(layers, x, v, DNNLossWeights(prediction=1.0, inf=0.5), residual=residual)
+    assert loss == pytest.approx(float(terms["prediction"] + 0.5 * terms["inf"]), rel=1e-6)
+
+
+# -- fast gradients against autograd on the readable definition --------------------------------
+
+
+def autograd_objective(learner, x, v, step):
+    """Loss and flat gradient of the paper's objective through the readable autograd terms."""
+    params = learner.params_
+    leaf = params.data.clone().requires_grad_()
+    layer = learner._step_layer(step)
+    if isinstance(learner, DeepEDMD):
+        encoder = params.layers("encoder", leaf)
+        if layer is not None:
+            encoder = [*encoder[:-1], layer, encoder[-1]]
+        views = params.views(leaf)
+        terms = deep_edmd_loss_terms(
+            encoder,
+            params.layers("decoder", leaf),
+            views["koopman.A.weight"],
+            views["koopman.B.weight"],
+            x,
+            v,
+            lifted_includes_state=learner.lifted_includes_state,
+        )
+        alpha = learner.alpha
+        loss = sum(w * terms[k] for k, w in alpha.data_terms().items())
+        objective = (
+            loss
+            + alpha.encoder_l2 * leaf[params.span("encoder")].square().sum()
+            + alpha.decoder_l2 * leaf[params.span("decoder")].square().sum()
+        )
+    else:
+        layers = params.layers("model", leaf)
+        if layer is not None:
+            layers = [*layers[:-1], layer, layers[-1]]
+        terms = dnn_loss_terms(layers, x, v, residual=learner.residual)
+        loss = learner.beta.prediction * terms["prediction"] + learner.beta.inf * terms["inf"]
+        objective = loss + learner.beta.l2 * leaf.square().sum()
+    (grad,) = torch.autograd.grad(objective, leaf)
+    return float(loss.detach()), grad
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: DeepEDMD(alpha={"inf": 0.1, "encoder_l2": 0.01, "decoder_l2": 0.02}),
+        lambda: DeepEDMD(lifted_includes_state=False, alpha={"inf": 0.1}),
+        lambda: DeepEDMD(random_layer={"enabled": True, "std": 0.3}),
+        lambda: DNN(beta={"inf": 0.1, "l2": 0.01}),
+        lambda: DNN(residual=True, random_layer={"enabled": True, "std": 0.3}),
+    ],
+    ids=["deep_edmd", "deep_edmd_phi_only", "deep_edmd_random", "dnn", "dnn_residual_random"],
+)
+def test_the_hand_written_gradients_equal_autograd_on_the_paper_loss(make) -> None:
+    """Paper-sized networks, p = 12, with every loss term and regularizer switched on."""
+    learner = make()
+    learner._build(3, 2)
+    learner.params_.initialize(torch.Generator().manual_seed(0))
+    generator = torch.Generator().manual_seed(1)
+    x = torch.rand(16, 13, 3, generator=generator)
+    v = torch.rand(16, 12, 2, generator=generator)
+    expected_loss, expected_grad = autograd_objective(learner, x, v, step=7)
+    learner.params_.grad.zero_()
+    loss = learner._objective().train_step(x, v, 7)
+    grad = learner.params_.grad
+    assert loss == pytest.approx(expected_loss, rel=1e-5)
+    assert float((grad - expected_grad).norm() / expected_grad.norm()) < 1e-5
+
+
+# -- the training loop ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_two_fits_with_one_seed_predict_identically(cls, data: dict) -> None:
+    x0, inputs = data["validation"][0].states[0], data["validation"][0].inputs[:200]
+    runs = [
+        small(cls, training={"seed": seed})
+        .fit(data["train"], data["validation"], data["normalizer"])
+        .predict(x0, inputs)
+        for seed in (0, 0, 1)
+    ]
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.array_equal(runs[0], runs[2])
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_a_killed_run_resumes_from_its_checkpoint_to_the_uninterrupted_result(
+    cls, data: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    args = (data["train"], data["validation"], data["normalizer"])
+    whole = small(cls).fit(*args, output_dir=tmp_path / "whole")
+
+    calls = {"n": 0}
+    adam_step = torch.optim.Adam.step
+
+    def dies_at_step_13(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 13:
+            raise KeyboardInterrupt("killed")
+        return adam_step(self, *a, **k)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(torch.optim.Adam, "step", dies_at_step_13)
+        with pytest.raises(KeyboardInterrupt):
+            small(cls).fit(*args, output_dir=tmp_path / "killed")
+    assert (tmp_path / "killed" / f"{cls.name}.ckpt").exists()
+    resumed = small(cls).fit(*args, output_dir=tmp_path / "killed")  # from step 10
+
+    short = small(cls, training={"max_steps": 20}).fit(*args, output_dir=tmp_path / "extended")
+    assert short.history_.step[-1] == 20
+    extended = small(cls).fit(*args, output_dir=tmp_path / "extended")  # 20 more steps
+
+    for other in (resumed, extended):
+        np.testing.assert_array_equal(other.params_.data, whole.params_.data)
+        assert other.history_ == whole.history_
+
+
+def test_a_checkpoint_of_other_hyperparameters_is_refused(data: dict, tmp_path: Path) -> None:
+    args = (data["train"], data["validation"], data["normalizer"])
+    small(DeepEDMD).fit(*args, output_dir=tmp_path)
+    with pytest.raises(ValueError, match="written for other data or hyperparameters") as info:
+        small(DeepEDMD, training={"lr": 1e-3}).fit(*args, output_dir=tmp_path)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_divergence_stops_training_with_a_one_line_error(cls, data: dict) -> None:
+    learner = small(cls, training={"lr": 1e4, "max_steps": 200})
+    with pytest.raises(RuntimeError, match="training diverged at step") as info:
+        learner.fit(data["train"], data["validation"], data["normalizer"])
+    assert "\n" not in str(info.value)
+
+
+def test_early_stopping_counts_validations_without_improvement() -> None:
+    state = _State.fresh()
+    config = TrainingConfig(patience=2)
+    params = type("P", (), {"data": torch.zeros(1)})()
+    for step, loss in enumerate([1.0, 0.9, 0.95, 0.9, 0.97], start=1):
+        params.data = torch.tensor([float(step)])
+        state.step, state.train_count, state.train_sum = step, 1, loss
+        state.evaluate({"loss": loss}, params, config)
+        if state.stopped:
+            break
+    assert state.stopped == "early_stopping" and state.step == 4  # 0.95 and 0.9 do not improve
+    assert float(state.best_params) == 2.0 and state.best_loss == 0.9
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_fit_returns_the_best_validated_model_and_draws_its_loss_curves(
+    cls, data: dict, tmp_path: Path
+) -> None:
+    logged = {}
+
+    class Capture(Recorder):
+        def series(self, path, time_s, values, timeline="sim_time"):
+            logged[path] = (np.asarray(time_s), dict(values), timeline)
+
+    learner = small(cls, training={"max_steps": 60, "lr": 3e-2}).fit(
+        data["train"],
+        data["validation"],
+        data["normalizer"],
+        recorder=Capture(),
+        output_dir=tmp_path,
+    )
+    history: History = learner.history_
+    assert history.step == [10, 20, 30, 40, 50, 60] and history.stopped == "max_steps"
+    window_data = WindowData.from_episodes(data["validation"], data["normalizer"])
+    starts = window_data.window_starts(learner.horizon)
+    final = learner._objective().validate(*window_data.gather(starts, learner.horizon))
+    assert final["loss"] == pytest.approx(min(v["loss"] for v in history.validation), rel=1e-5)
+    steps, values, timeline = logged[f"training/{cls.name}"]
+    assert timeline == "step" and steps.dtype == np.int64 and list(steps) == history.step
+    np.testing.assert_array_equal(values["train"], history.train)
+    assert (tmp_path / f"{cls.name}_loss.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_the_random_layer_is_redrawn_per_seed_and_nominal_without_one(cls, data: dict) -> None:
+    learner = small(cls, random_layer={"enabled": True, "std": 0.2}).fit(
+        data["train"], data["validation"], data["normalizer"]
+    )
+    x0, inputs = data["validation"][0].states[100], data["validation"][0].inputs[100:150]
+    nominal = learner.predict(x0, inputs)
+    first, again, other = (learner.predict(x0, inputs, random_layer_seed=s) for s in (3, 3, 4))
+    np.testing.assert_array_equal(first, again)
+    assert not np.allclose(first, other) and not np.allclose(first, nominal)
+    # the layer's mean is the identity after a ReLU: drawn with std 0 it changes nothing
+    learner.random_layer = type(learner.random_layer)(enabled=True, std=0.0)
+    np.testing.assert_allclose(learner.predict(x0, inputs, random_layer_seed=5), nominal, rtol=1e-6)
+    learner.random_layer = type(learner.random_layer)(enabled=False)
+    with pytest.raises(ValueError, match="has no random layer"):
+        learner.predict(x0, inputs, random_layer_seed=0)
+
+
+def test_the_least_squares_refit_minimizes_the_one_step_lifted_residual(data: dict) -> None:
+    args = (data["train"], data["validation"], data["normalizer"])
+    trained = small(DeepEDMD).fit(*args)
+    refit = small(DeepEDMD, refit_koopman_lstsq=True).fit(*args)
+    np.testing.assert_array_equal(trained.params_.data[:100], refit.params_.data[:100])
+
+    def residual(model) -> float:
+        total = 0.0
+        for e in data["train"]:
+            z, v = model.lift(e.states), data["normalizer"].inputs(e.inputs)
+            total += float(np.sum((z[1:] - z[:-1] @ model.A_.T - v[:-1] @ model.B_.T) ** 2))
+        return total
+
+    assert residual(refit) < 0.5 * residual(trained)

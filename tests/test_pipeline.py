@@ -1,0 +1,96 @@
+"""The main job runs data -> training -> prediction -> tracking and honours its contracts."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+TINY = [
+    "data.episodes=3",
+    "data.min_steps=300",
+    "data.max_steps=400",
+    "data.split={train: 1, validation: 1, test: 1}",
+    "recorder=none",
+    "task.tracking_references=[test_episode]",
+]
+
+
+def run_main(tmp: Path, run_dir: Path, *overrides: str) -> dict:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "harness",
+            *TINY,
+            f"data.root={tmp}/datasets",
+            f"hydra.run.dir={run_dir}",
+            *overrides,
+        ],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def edmd_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
+    tmp = tmp_path_factory.mktemp("pipeline")
+    run_dir = tmp / "edmd"
+    return tmp, run_dir, run_main(tmp, run_dir, "learner=edmd")
+
+
+def test_metrics_follow_the_public_contract(edmd_run) -> None:
+    _, run_dir, metrics = edmd_run
+    assert set(metrics) == {"data", "training", "prediction", "tracking"}
+    (test_episode,) = metrics["data"]["split"]["test"]
+    rmse = metrics["prediction"][test_episode]["rmse"]
+    assert set(rmse) == {"vx", "vy", "yaw_rate"} and all(v >= 0 for v in rmse.values())
+    tracking = metrics["tracking"]
+    assert set(tracking["rmse"]) == {"vx", "vy", "yaw_rate"}
+    assert set(tracking["solve_time_ms"]) == {"median", "p99", "max"}
+    assert tracking["horizon"] == {"Np": 10, "Nc": 7}
+    assert {"deadline_misses", "solver_failures"} <= set(tracking)
+    for figure in (
+        "data_coverage.png",
+        f"prediction_{test_episode}.png",
+        "tracking_test_episode.png",
+    ):
+        assert (run_dir / figure).exists(), figure
+
+
+def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
+    tmp, run_dir, metrics = edmd_run
+    again = run_main(tmp, tmp / "reuse", "learner=edmd", f"task.model_path={run_dir}/model_edmd.pt")
+    assert again["training"]["source"].endswith("model_edmd.pt")
+    assert again["prediction"] == metrics["prediction"]
+
+
+def test_deep_edmd_runs_the_whole_pipeline_on_a_tiny_budget(tmp_path: Path) -> None:
+    metrics = run_main(
+        tmp_path,
+        tmp_path / "deep",
+        "learner=deep_edmd",
+        "learner.training.max_steps=30",
+        "learner.training.eval_every_steps=10",
+        "controller=de_mpc_long",
+    )
+    assert metrics["training"]["learner"] == "deep_edmd"
+    assert metrics["tracking"]["horizon"] == {"Np": 60, "Nc": 50}
+
+
+def test_a_non_koopman_learner_skips_tracking_and_says_why(tmp_path: Path) -> None:
+    metrics = run_main(
+        tmp_path,
+        tmp_path / "dnn",
+        "learner=dnn",
+        "learner.training.max_steps=20",
+        "learner.training.eval_every_steps=10",
+    )
+    assert "not a lifted-linear model" in metrics["tracking"]["skipped"]

@@ -1,0 +1,178 @@
+"""The prediction experiments: RMSE definitions against hand computation, figures, recordings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from harness.data.episode import Episode, MinMaxNormalizer
+from harness.prediction import by_episode, evaluate, robustness, windowed
+from harness.recorder import Recorder
+from learners import DNN, EDMD, Learner
+from learners.toydata import drive_episodes
+from learners.training import RandomLayerConfig
+
+A_TRUE = np.array([[0.98, 0.05, 0.0], [-0.05, 0.95, 0.0], [0.0, 0.02, 0.9]])
+B_TRUE = np.array([[0.01, 0.0], [0.0, 0.02], [0.01, -0.01]])
+
+
+def linear_episode(name: str, steps: int, seed: int) -> Episode:
+    """A linear system in the normalized coordinates of a 0..1 normalizer (physical = normalized
+    for the states; inputs mapped back exactly), sampled at 10 ms."""
+    rng = np.random.default_rng(seed)
+    v = rng.uniform(0, 1, (steps, 2))
+    z = np.zeros((steps, 3))
+    z[0] = rng.uniform(0, 1, 3)
+    for k in range(steps - 1):
+        z[k + 1] = A_TRUE @ z[k] + B_TRUE @ v[k]
+    inputs = NORMALIZER.inputs_inverse(v)
+    return Episode(name, np.arange(steps) * 0.01, z, inputs, np.zeros((steps, 3)))
+
+
+NORMALIZER = MinMaxNormalizer(
+    np.zeros(3), np.ones(3), np.array([-450.0, -1.0]), np.array([450.0, 1.0])
+)
+
+
+class Hold(Learner):
+    """The initial state held: the 'no model' baseline, with an RMSE easy to compute by hand."""
+
+    name = "hold"
+
+    def fit(self, train, validation, normalizer, *, recorder=None, output_dir=None):
+        return self
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        return np.repeat(np.asarray(x0)[..., None, :], inputs.shape[-2] + 1, axis=-2)
+
+    def _state(self) -> dict:
+        return {}
+
+    def _set_state(self, state) -> None:
+        pass
+
+
+class NoisyHold(Hold):
+    """Hold plus a constant offset drawn per row from the random-layer seed (for robustness)."""
+
+    name = "noisy_hold"
+    random_layer = RandomLayerConfig(enabled=True, std=1.0)
+
+    def predict(self, x0, inputs, *, random_layer_seed: int | None = None) -> np.ndarray:
+        out = super().predict(x0, inputs)
+        if random_layer_seed is not None:
+            rng = np.random.default_rng(random_layer_seed)
+            out = out + rng.normal(0, 1, (*out.shape[:-2], 1, 3))
+        return out
+
+
+def test_a_perfect_model_has_zero_rmse_in_every_metric() -> None:
+    episodes = [linear_episode("train", 600, 0)]
+    test = linear_episode("test", 1234, 1)
+    exact = EDMD(num_centers=0, include_constant=False, ridge=0.0).fit(episodes, [], NORMALIZER)
+    results = evaluate({"exact": exact}, [test], window_steps=41, window_seconds=5.0)
+    metrics = results["exact"]["test"]
+    assert set(metrics) == {"rmse", "rmse_window_41", "rmse_window_5s"}
+    for values in metrics.values():
+        assert set(values) == {"vx", "vy", "yaw_rate"}
+        assert max(values.values()) < 1e-9
+
+
+def test_rmses_of_holding_the_start_match_hand_computation() -> None:
+    episode = drive_episodes(1, 12.0, first_seed=3)[0]  # 1201 samples
+    x = episode.states
+    results = evaluate({"hold": Hold()}, [episode], window_steps=41, window_seconds=10.0)
+    metrics = results["hold"][episode.name]
+    whole = np.sqrt(np.mean((x[1:] - x[0]) ** 2, axis=0))
+    np.testing.assert_allclose(list(metrics["rmse"].values()), whole, rtol=1e-12)
+    for key, w in (("rmse_window_41", 41), ("rmse_window_10s", 1000)):
+        errors = [x[k] - x[(k // w) * w] for k in range(1, len(x)) if k % w]
+        expected = np.sqrt(np.mean(np.square(errors), axis=0))
+        np.testing.assert_allclose(list(metrics[key].values()), expected, rtol=1e-12)
+
+
+def test_windows_restart_from_the_measured_state_and_cover_the_whole_episode() -> None:
+    episode = linear_episode("e", 100, 2)
+    predicted, rows = windowed(Hold(), episode, 30)
+    np.testing.assert_array_equal(predicted[[0, 30, 60, 90]], episode.states[[0, 30, 60, 90]])
+    np.testing.assert_array_equal(predicted[91:], np.repeat(episode.states[90:91], 9, 0))
+    assert set(rows) == set(range(100)) - {0, 30, 60, 90}
+    longer, rows = windowed(Hold(), episode, 500)  # one window, the whole episode
+    np.testing.assert_array_equal(longer, np.repeat(episode.states[:1], 100, 0))
+    assert list(rows) == list(range(1, 100))
+
+
+def test_evaluate_draws_the_paper_figure_and_records_truth_with_predictions(
+    tmp_path: Path,
+) -> None:
+    rollouts: list[dict[str, Any]] = []
+
+    class Capture(Recorder):
+        def rollout(self, name, time_s, states, inputs, poses=None, extra=None, **kwargs):
+            rollouts.append({"name": name, "states": states, "extra": extra})
+
+    episodes = [linear_episode("a", 300, 3), linear_episode("b", 200, 4)]
+    results = evaluate(
+        {"hold": Hold(), "hold_too": Hold()}, episodes, recorder=Capture(), output_dir=tmp_path
+    )
+    assert set(results) == {"hold", "hold_too"} and set(results["hold"]) == {"a", "b"}
+    assert set(by_episode(results)) == {"a", "b"}
+    assert by_episode(results)["b"]["hold_too"] == results["hold_too"]["b"]
+    assert [r["name"] for r in rollouts] == ["prediction/a", "prediction/b"]
+    assert set(rollouts[0]["extra"]) == {"predicted_hold", "predicted_hold_too"}
+    assert rollouts[1]["extra"]["predicted_hold"].shape == (200, 3)
+    for name in ("a", "b"):
+        assert (tmp_path / f"prediction_{name}.png").stat().st_size > 20_000
+
+
+def test_a_diverging_model_reports_inf_not_nan() -> None:
+    class Diverges(Hold):
+        def predict(self, x0, inputs):
+            out = super().predict(x0, inputs).astype(float)
+            out[..., 5:, :] = np.nan
+            return out
+
+    metrics = evaluate({"bad": Diverges()}, [linear_episode("e", 50, 5)])["bad"]["e"]
+    assert metrics["rmse"] == {"vx": np.inf, "vy": np.inf, "yaw_rate": np.inf}
+
+
+def test_robustness_summarizes_repeated_predictions(tmp_path: Path) -> None:
+    episode = linear_episode("e", 120, 6)
+    results = robustness(NoisyHold(), [episode], repeats=60, output_dir=tmp_path)
+    summary = results["noisy_hold"]["e"]
+    # repeat r = row r % 25 of the batch seeded 25 * (r // 25): recompute every RMSE by hand
+    held = np.repeat(episode.states[:1], 120, 0)
+    errors = []
+    for first in (0, 25, 50):
+        rows = min(25, 60 - first)
+        offsets = np.random.default_rng(first).normal(0, 1, (rows, 1, 3))
+        for r in range(rows):
+            pred = held + offsets[r]
+            errors.append(np.sqrt(np.mean((pred[1:] - episode.states[1:]) ** 2, axis=0)))
+    errors = np.array(errors)
+    np.testing.assert_allclose(list(summary["rmse_mean"].values()), errors.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(list(summary["rmse_std"].values()), errors.std(0), rtol=1e-12)
+    np.testing.assert_allclose(list(summary["rmse_max"].values()), errors.max(0), rtol=1e-12)
+    nominal = np.sqrt(np.mean((held[1:] - episode.states[1:]) ** 2, axis=0))
+    np.testing.assert_allclose(list(summary["rmse_nominal"].values()), nominal, rtol=1e-12)
+    assert (tmp_path / "robustness_e.png").stat().st_size > 20_000
+
+
+def test_robustness_of_a_trained_dnn_spreads_and_refuses_models_without_the_layer() -> None:
+    episodes = drive_episodes(3, 20.0, first_seed=20)
+    normalizer = MinMaxNormalizer.fit(episodes[:2])
+    dnn = DNN(
+        hidden=[16, 16],
+        horizon=8,
+        random_layer={"enabled": True, "std": 0.3},
+        training={"max_steps": 30, "batch_size": 16, "progress": False},
+    )
+    dnn.fit(episodes[:2], [], normalizer)
+    summary = robustness({"dnn": dnn}, episodes[2:], repeats=10)["dnn"][episodes[2].name]
+    assert all(v > 0 for v in summary["rmse_std"].values())
+    assert all(summary["rmse_min"][k] <= summary["rmse_max"][k] for k in summary["rmse_min"])
+    with pytest.raises(ValueError, match="was not trained with a random layer"):
+        robustness({"edmd": EDMD(num_centers=5).fit(episodes[:2], [], normalizer)}, episodes[2:])
