@@ -231,7 +231,7 @@ def test_a_model_that_breaks_the_contract_is_refused() -> None:
 @pytest.mark.parametrize(("name", "horizons"), [("de_mpc", (10, 7)), ("de_mpc_long", (60, 50))])
 def test_the_configs_instantiate_with_the_model_given_at_run_time(name, horizons) -> None:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"+controller={name}"])
+        cfg = compose(config_name="config", overrides=[f"controller={name}"])
     controller = instantiate(cfg.controller)(linear_model())
     assert isinstance(controller, DEMPC) and (controller.Np, controller.Nc) == horizons
     np.testing.assert_allclose(controller.qp.Q, 1000 * np.eye(3))

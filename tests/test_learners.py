@@ -71,7 +71,7 @@ def fitted(data: dict) -> dict[str, Learner]:
 
 def compose_learner(name: str, *overrides: str):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"+learner={name}", *overrides]).learner
+        return compose(config_name="config", overrides=[f"learner={name}", *overrides]).learner
 
 
 @pytest.mark.parametrize("name", NAMES)
