@@ -96,27 +96,53 @@ def _get(tree: Mapping[str, Any] | None, *keys: str) -> Any:
     return tree
 
 
+_NAMED = {"learner", "plant", "controller", "seed"}
+
+
+def _variant(job: Job, common: Mapping[str, str]) -> str:
+    """The job's overrides that differ within the sweep, besides the named ones and the seed."""
+    return ",".join(
+        f"{k}={v}"
+        for k, v in sorted(job.overrides.items())
+        if k not in _NAMED and common.get(k) != v
+    )
+
+
+def _common(jobs: Iterable[Job]) -> dict[str, str]:
+    jobs = list(jobs)
+    if not jobs:
+        return {}
+    shared = dict(jobs[0].overrides)
+    for job in jobs[1:]:
+        shared = {k: v for k, v in shared.items() if job.overrides.get(k) == v}
+    return shared
+
+
 def _group(jobs: Iterable[Job], *keys: tuple[str, str]) -> dict[tuple[str, ...], list[Job]]:
+    """Jobs that differ only by seed share a group (mean ± std); the last key is the variant."""
+    jobs = list(jobs)
+    common = _common(jobs)
     groups: dict[tuple[str, ...], list[Job]] = defaultdict(list)
     for job in jobs:
-        groups[tuple(job.choice(k, default) for k, default in keys)].append(job)
+        key = (*(job.choice(k, default) for k, default in keys), _variant(job, common))
+        groups[key].append(job)
     return dict(sorted(groups.items()))
 
 
-def prediction_table(jobs: list[Job], variant: str = "rmse") -> Table:
+def prediction_table(jobs: list[Job], metric: str = "rmse") -> Table:
     table = Table(
-        f"Prediction RMSE ({variant}; vx, vy in m/s, yaw rate in rad/s; mean ± std over seeds)",
-        ["learner", "plant", "test episode", "seeds", *STATES],
+        f"Prediction RMSE ({metric}; vx, vy in m/s, yaw rate in rad/s; mean ± std over seeds)",
+        ["learner", "plant", "variant", "test episode", "seeds", *STATES],
     )
-    for (learner, plant), members in _group(
+    for (learner, plant, variant), members in _group(
         jobs, ("learner", "deep_edmd"), ("plant", "sedan")
     ).items():
         episodes = sorted({e for j in members for e in (_get(j.metrics, "prediction") or {})})
         for episode in episodes:
-            values = [_get(j.metrics, "prediction", episode, variant) for j in members]
+            values = [_get(j.metrics, "prediction", episode, metric) for j in members]
             present = [v for v in values if v]
             table.rows.append(
-                [learner, plant, episode, str(len(present))]
+                [learner, plant, variant or "—", episode, str(len(present))]
                 + [_mean_std(v.get(s) for v in present) for s in STATES]
             )
     return table
@@ -129,6 +155,7 @@ def tracking_table(jobs: list[Job]) -> Table:
             "learner",
             "controller",
             "Np/Nc",
+            "variant",
             "seeds",
             *STATES,
             "solve median",
@@ -137,7 +164,7 @@ def tracking_table(jobs: list[Job]) -> Table:
             "solver failures",
         ],
     )
-    for (learner, controller), members in _group(
+    for (learner, controller, variant), members in _group(
         jobs, ("learner", "deep_edmd"), ("controller", "de_mpc")
     ).items():
         tracked = [j for j in members if _get(j.metrics, "tracking", "rmse")]
@@ -149,6 +176,7 @@ def tracking_table(jobs: list[Job]) -> Table:
                 learner,
                 controller,
                 f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
+                variant or "—",
                 str(len(tracked)),
             ]
             + [_mean_std(_get(j.metrics, "tracking", "rmse", s) for j in tracked) for s in STATES]
@@ -165,13 +193,14 @@ def tracking_table(jobs: list[Job]) -> Table:
 
 
 def training_table(jobs: list[Job]) -> Table:
-    table = Table("Training", ["learner", "seeds", "fit time (s)", "train frames"])
-    for (learner,), members in _group(jobs, ("learner", "deep_edmd")).items():
+    table = Table("Training", ["learner", "variant", "seeds", "fit time (s)", "train frames"])
+    for (learner, variant), members in _group(jobs, ("learner", "deep_edmd")).items():
         trained = [j for j in members if _get(j.metrics, "training")]
         if trained:
             table.rows.append(
                 [
                     learner,
+                    variant or "—",
                     str(len(trained)),
                     _mean_std(_get(j.metrics, "training", "fit_time_s") for j in trained),
                     _mean_std(_get(j.metrics, "training", "train_frames") for j in trained),

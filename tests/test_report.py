@@ -1,0 +1,89 @@
+"""Sweeps: every job's result, or the reason it has none, ends up in the report's tables."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from harness.report import find_jobs, report
+from tests.test_pipeline import TINY
+
+
+def sweep(tmp: Path, sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "harness",
+            "-m",
+            *TINY,
+            f"data.root={tmp}/datasets",
+            f"hydra.sweep.dir={sweep_dir}",
+            *overrides,
+        ],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """2 learners x 2 seeds on tiny data, plus one job that fails on a bad value."""
+    tmp = tmp_path_factory.mktemp("sweep")
+    sweep_dir = tmp / "multirun"
+    result = sweep(tmp, sweep_dir, "learner=edmd,elm_edmd", "seed=0,1")
+    assert result.returncode == 0, result.stderr[-3000:]
+    failing = sweep(tmp, sweep_dir / "bad", "learner=edmd", "learner.ridge=-1,0.0")
+    assert failing.returncode == 0, failing.stderr[-3000:]  # one failed job ends no sweep
+    return sweep_dir
+
+
+def test_sweep_jobs_get_readable_directories(tiny_sweep: Path) -> None:
+    names = [job.name for job in find_jobs(tiny_sweep)]
+    for learner in ("edmd", "elm_edmd"):
+        for seed in (0, 1):
+            assert sum(f"learner={learner}," in n and f"seed={seed}" in n for n in names) == 1
+
+
+def test_report_has_a_row_per_learner_and_test_episode_over_seeds(tiny_sweep: Path) -> None:
+    text = report(tiny_sweep).read_text()
+    prediction = (tiny_sweep / "report" / "prediction.csv").read_text().splitlines()
+    assert prediction[0] == "learner,plant,variant,test episode,seeds,vx,vy,yaw_rate"
+    rows = [line.split(",") for line in prediction[1:]]
+    plain = {(r[0], r[4]) for r in rows if r[2] == "—"}
+    assert plain == {("edmd", "2"), ("elm_edmd", "2")}  # two seeds each
+    assert sum(r[2] == "—" for r in rows) == 2  # one test episode per learner
+    assert all("±" in r[5] for r in rows if r[4] == "2")  # mean ± std over the two seeds
+    assert any(r[2] == "learner.ridge=0.0" for r in rows)  # a different variant is its own row
+    tracking = (tiny_sweep / "report" / "tracking.csv").read_text()
+    assert "edmd,de_mpc,10/7" in tracking
+    assert "5 of 6 jobs finished" in text
+
+
+def test_a_failed_job_is_reported_with_its_error(tiny_sweep: Path) -> None:
+    report(tiny_sweep)
+    failures = (tiny_sweep / "report" / "failures.csv").read_text()
+    assert "learner.ridge=-1" in failures and "learner.ridge" in failures.split("\n", 2)[1]
+
+
+def test_a_job_without_metrics_is_named(tiny_sweep: Path, tmp_path: Path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_sweep, copy)
+    (victim,) = [
+        j.path for j in find_jobs(copy) if "learner=edmd," in j.name and "seed=1" in j.name
+    ]
+    (victim / "metrics.json").unlink()
+    report(copy)
+    failures = (copy / "report" / "failures.csv").read_text()
+    assert f"{victim.name},no metrics.json" in failures.replace('"', "")
+
+
+def test_an_empty_directory_is_refused_in_one_line(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no Hydra job directories"):
+        report(tmp_path)
