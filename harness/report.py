@@ -131,8 +131,8 @@ def _group(jobs: Iterable[Job], *keys: tuple[str, str]) -> dict[tuple[str, ...],
 
 def prediction_table(jobs: list[Job], metric: str = "rmse") -> Table:
     table = Table(
-        f"Prediction RMSE ({metric}; vx, vy in m/s, yaw rate in rad/s; mean ± std over seeds)",
-        ["learner", "plant", "variant", "test episode", "seeds", *STATES],
+        f"Prediction RMSE ({metric}; vx, vy in m/s, yaw rate in rad/s; mean ± std over jobs: seeds)",
+        ["learner", "plant", "variant", "test episode", "jobs", *STATES],
     )
     for (learner, plant, variant), members in _group(
         jobs, ("learner", "deep_edmd"), ("plant", "sedan")
@@ -156,7 +156,7 @@ def tracking_table(jobs: list[Job]) -> Table:
             "controller",
             "Np/Nc",
             "variant",
-            "seeds",
+            "jobs",
             *STATES,
             "solve median",
             "solve p99",
@@ -193,7 +193,7 @@ def tracking_table(jobs: list[Job]) -> Table:
 
 
 def training_table(jobs: list[Job]) -> Table:
-    table = Table("Training", ["learner", "variant", "seeds", "fit time (s)", "train frames"])
+    table = Table("Training", ["learner", "variant", "jobs", "fit time (s)", "train frames"])
     for (learner, variant), members in _group(jobs, ("learner", "deep_edmd")).items():
         trained = [j for j in members if _get(j.metrics, "training")]
         if trained:

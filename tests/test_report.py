@@ -54,7 +54,7 @@ def test_sweep_jobs_get_readable_directories(tiny_sweep: Path) -> None:
 def test_report_has_a_row_per_learner_and_test_episode_over_seeds(tiny_sweep: Path) -> None:
     text = report(tiny_sweep).read_text()
     prediction = (tiny_sweep / "report" / "prediction.csv").read_text().splitlines()
-    assert prediction[0] == "learner,plant,variant,test episode,seeds,vx,vy,yaw_rate"
+    assert prediction[0] == "learner,plant,variant,test episode,jobs,vx,vy,yaw_rate"
     rows = [line.split(",") for line in prediction[1:]]
     plain = {(r[0], r[4]) for r in rows if r[2] == "—"}
     assert plain == {("edmd", "2"), ("elm_edmd", "2")}  # two seeds each
