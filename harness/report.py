@@ -131,7 +131,7 @@ def _group(jobs: Iterable[Job], *keys: tuple[str, str]) -> dict[tuple[str, ...],
 
 def prediction_table(jobs: list[Job], metric: str = "rmse") -> Table:
     table = Table(
-        f"Prediction RMSE ({metric}; vx, vy in m/s, yaw rate in rad/s; mean ± std over jobs: seeds)",
+        f"Prediction RMSE ({metric}; vx, vy in m/s, yaw rate in rad/s; mean ± std over jobs)",
         ["learner", "plant", "variant", "test episode", "jobs", *STATES],
     )
     for (learner, plant, variant), members in _group(
