@@ -28,6 +28,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from harness.figures import save_figure
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.rollout import SpeedHold, Trajectory, simulate
@@ -359,7 +360,4 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
         ax.grid(alpha=0.3)
     fig.suptitle(f"Plant characterization: {name}")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path, dpi=110)

@@ -32,6 +32,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from harness.figures import save_figure
 from harness.plant import INPUT_NAMES, STATE_NAMES
 from harness.recorder import Recorder
 from harness.rollout import Trajectory
@@ -174,5 +175,4 @@ def plot_tracking(runs: Mapping[str, TrackingTrajectory], path: Path) -> None:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)

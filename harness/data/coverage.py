@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from harness.data.episode import Episode, pedal_scale
+from harness.figures import save_figure
 
 G = 9.81
 
@@ -100,7 +101,4 @@ def plot(splits: dict[str, Sequence[Episode]], road_friction: float, path: Path)
     )
     fig.suptitle(f"Driving data: {len(states):,} frames at 10 ms")
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path, dpi=100)
