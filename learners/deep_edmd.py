@@ -29,7 +29,7 @@ where z_i = lift(x_i) and K^[i] z_0 = A^i z_0 + sum_{j<i} A^{i-1-j} B v_j (eq. f
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from typing import Any, ClassVar
 
@@ -359,14 +359,16 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         else:  # the paper's C = argmin sum ||x_k - C phi(x_k)||^2
             self.C_ = ridge_lstsq(self._lifted_states(train), _LSTSQ_RIDGE).T
 
-    def _lifted_pairs(self, episodes: Sequence[Episode]):
+    def _lifted_pairs(self, episodes: Sequence[Episode]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for e in episodes:
             z = self.lift(e.states)
             v = self.normalizer_.inputs(e.inputs)
             for rows in row_chunks(z[:-1], 20_000):
                 yield np.hstack([z[:-1][rows], v[:-1][rows]]), z[1:][rows]
 
-    def _lifted_states(self, episodes: Sequence[Episode]):
+    def _lifted_states(
+        self, episodes: Sequence[Episode]
+    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for e in episodes:
             yield self.lift(e.states), self.normalizer_.states(e.states)
 

@@ -16,7 +16,7 @@ the affine terms that min-max normalization introduces (a linear plant is affine
 from __future__ import annotations
 
 from abc import abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Self
 
@@ -89,7 +89,7 @@ class LiftedLinearLearner(KoopmanLearner):
         states_n = np.concatenate([normalizer.states(e.states) for e in train])
         self._init_observables(states_n, np.random.default_rng(self.seed))
 
-        def pairs():
+        def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
             for e in train:
                 z = self._lift_n(normalizer.states(e.states))
                 v = normalizer.inputs(e.inputs)

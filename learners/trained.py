@@ -12,9 +12,10 @@ import torch
 
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.recorder import Recorder
+from learners import training as loop
 from learners.base import Learner, check_episodes, check_int, check_rollout_args
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
-from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, train
+from learners.training import History, Objective, RandomLayerConfig, TrainingConfig
 from learners.windows import WindowData
 
 __all__ = ["TrainedLearner"]
@@ -94,7 +95,7 @@ class TrainedLearner(Learner):
         fingerprint["training"] = {
             k: v for k, v in fingerprint["training"].items() if k not in _RESUMABLE
         }
-        self.history_ = train_loop(
+        self.history_ = loop.train(
             self.name,
             self._objective(),
             WindowData.from_episodes(train, normalizer),
@@ -166,6 +167,3 @@ class TrainedLearner(Learner):
         if state["params"].shape != self.params_.data.shape:
             raise ValueError(f"{self.name} file does not match its hyperparameters")
         self.params_.data.copy_(state["params"])
-
-
-train_loop = train
