@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from harness.data.episode import Episode
+from harness.figures import save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
 
@@ -261,7 +262,7 @@ def _figure(episode: Episode):
 
 def plot_prediction(episode: Episode, predictions: Mapping[str, np.ndarray], path: Path) -> Path:
     """Three state panels (measured and every learner's open-loop prediction) and the inputs."""
-    fig, axes, plt = _figure(episode)
+    fig, axes, _ = _figure(episode)
     for k, (name, pred) in enumerate(predictions.items()):
         for i in range(3):
             axes[i].plot(episode.time_s, pred[:, i], color=f"C{k}", lw=1.0, label=name)
@@ -269,9 +270,7 @@ def plot_prediction(episode: Episode, predictions: Mapping[str, np.ndarray], pat
     axes[0].set_title(f"open-loop prediction, {episode.name} (axes clipped to 2x the data range)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_robustness(
@@ -280,7 +279,7 @@ def plot_robustness(
     path: Path,
 ) -> Path:
     """Mean of the repeated predictions per learner with their 5-95 % band shaded."""
-    fig, axes, plt = _figure(episode)
+    fig, axes, _ = _figure(episode)
     for k, (name, (mean, low, high)) in enumerate(bands.items()):
         for i in range(3):
             axes[i].plot(episode.time_s, mean[:, i], color=f"C{k}", lw=1.0, label=f"{name} mean")
@@ -291,6 +290,4 @@ def plot_robustness(
     axes[0].set_title(f"repeated predictions with a random layer, {episode.name} (5-95 % band)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from harness.figures import save_figure
 from harness.recorder import Recorder
 from learners.base import check, check_int, check_nonnegative, check_positive
 from learners.nets import FlatParameters
@@ -424,9 +425,7 @@ def plot_loss_curves(history: History, path: Path, title: str = "") -> Path:
     ax.legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=120)
 
 
 @contextlib.contextmanager
