@@ -263,6 +263,16 @@ def _collect_one(args: tuple[SedanParams, DataConfig, int, int, str]) -> tuple[i
     return index, _sha256(path), len(episode["time_s"]), bool(episode["spun"])
 
 
+def _read_manifest(directory: Path) -> dict[str, Any]:
+    path = directory / "manifest.json"
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise DatasetError(
+            f"data: {path} is not valid JSON ({error}); delete {directory} to recollect"
+        ) from error
+
+
 def _verify(directory: Path, manifest: dict[str, Any]) -> None:
     for name, entry in manifest["episodes"].items():
         path = directory / entry["file"]
@@ -283,12 +293,7 @@ def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = Tru
     with _locked(directory):
         manifest_path = directory / "manifest.json"
         if manifest_path.exists():
-            try:
-                manifest = json.loads(manifest_path.read_text())
-            except json.JSONDecodeError as error:
-                raise DatasetError(
-                    f"data: {manifest_path} is not valid JSON ({error}); delete {directory}"
-                ) from error
+            manifest = _read_manifest(directory)
             if manifest.get("key") != key:
                 raise DatasetError(f"data: {manifest_path} belongs to another dataset; delete it")
         else:
@@ -362,15 +367,9 @@ def _load_episode(directory: Path, name: str, manifest: dict[str, Any]) -> Episo
 def load(directory: Path | str) -> Dataset:
     """Load a complete dataset, checking every file against its checksum first."""
     directory = Path(directory)
-    manifest_path = directory / "manifest.json"
-    if not manifest_path.exists():
+    if not (directory / "manifest.json").exists():
         raise DatasetError(f"data: {directory} has no manifest.json; it is not a dataset")
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except json.JSONDecodeError as error:
-        raise DatasetError(
-            f"data: {manifest_path} is not valid JSON; delete {directory}"
-        ) from error
+    manifest = _read_manifest(directory)
     if manifest.get("format") != FORMAT_VERSION or not manifest.get("complete"):
         raise DatasetError(f"data: {directory} is incomplete or of another format; rerun collect")
     _verify(directory, manifest)
