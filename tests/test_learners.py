@@ -15,7 +15,7 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from harness.paths import CONF_DIR
 from harness.prediction import open_loop, rmse
 from learners import DNN, EDMD, ELMEDMD, DeepEDMD, KoopmanLearner, Learner
-from learners.toydata import drive_episodes
+from tests.toydata import drive_episodes
 
 NAMES = ("edmd", "elm_edmd", "dnn", "deep_edmd")
 

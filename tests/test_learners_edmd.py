@@ -8,7 +8,7 @@ import pytest
 from harness.data.episode import Episode, MinMaxNormalizer
 from learners import EDMD, ELMEDMD, DeepEDMD
 from learners.linalg import ridge_lstsq
-from learners.toydata import drive_episodes
+from tests.toydata import drive_episodes
 
 # A lightly damped, coupled 3-state system in normalized coordinates, driven by 2 inputs.
 A_TRUE = np.array([[0.95, 0.10, 0.00], [-0.10, 0.90, 0.05], [0.02, 0.00, 0.80]])

@@ -15,9 +15,9 @@ from learners import DNN, DeepEDMD
 from learners.deep_edmd import LossWeights, deep_edmd_loss_terms, deep_edmd_step
 from learners.dnn import DNNLossWeights, dnn_loss_terms, dnn_step
 from learners.nets import Dense
-from learners.toydata import drive_episodes
 from learners.training import History, TrainingConfig, _State
 from learners.windows import WindowData
+from tests.toydata import drive_episodes
 
 
 def sigmoid(a: float) -> float:

@@ -12,8 +12,8 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from harness.prediction import by_episode, evaluate, robustness, windowed
 from harness.recorder import Recorder
 from learners import DNN, EDMD, Learner
-from learners.toydata import drive_episodes
 from learners.training import RandomLayerConfig
+from tests.toydata import drive_episodes
 
 A_TRUE = np.array([[0.98, 0.05, 0.0], [-0.05, 0.95, 0.0], [0.0, 0.02, 0.9]])
 B_TRUE = np.array([[0.01, 0.0], [0.0, 0.02], [0.01, -0.01]])
