@@ -11,7 +11,15 @@ Sections written to ``metrics.json``:
 - ``tracking``: DE-MPC on the plant (Koopman learners only). The top-level keys
   (``rmse``, ``solve_time_ms``, ``deadline_misses``, ``solver_failures``) are the paper's
   experiment, tracking the first test episode; ``tracking.references.<name>`` holds every
-  reference tracked, e.g. the ISO 3888 double lane change.
+  reference tracked, e.g. the ISO 3888 double lane change; ``tracking.controllers.<name>``
+  the same for every controller (``controller`` first, then ``task.extra_controllers``, e.g.
+  both of the paper's horizons);
+- ``generalization.<plant>`` (``task.other_plants``, ``experiment=generalization``): the model
+  of this run's plant evaluated on the test drives driven again on another plant, with the
+  same ``prediction`` and ``tracking`` sections.
+
+Beside ``metrics.json`` it leaves the arrays behind its figures (``prediction_<episode>.npz``,
+``tracking_<controller>_<reference>.npz``, ``training_history.json``) for a sweep's report.
 """
 
 from __future__ import annotations
@@ -24,7 +32,9 @@ from typing import Any
 
 from harness import references
 from harness.data.collect import prepare
-from harness.data.store import DataConfig
+from harness.data.episode import Episode
+from harness.data.store import DataConfig, Dataset, drive_again
+from harness.metrics import write_json_atomic
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
@@ -47,6 +57,9 @@ class Pipeline:
         learner_name: str,
         controller: Callable[..., Any] | None = None,
         *,
+        controller_name: str = "de_mpc",
+        extra_controllers: Mapping[str, Callable[..., Any]] | None = None,
+        other_plants: Mapping[str, Sedan] | None = None,
         model_path: str | None = None,
         prediction_window_steps: int = 41,
         prediction_window_s: float = 10.0,
@@ -56,7 +69,14 @@ class Pipeline:
     ) -> None:
         self.data = DataConfig.from_config(data)
         self.learner, self.learner_name = learner, learner_name
-        self.make_controller = controller
+        self.controllers = {controller_name: controller} if controller is not None else {}
+        for name, make in (extra_controllers or {}).items():
+            if not callable(make):
+                raise ValueError(
+                    f"task.extra_controllers.{name} must be a controller config (_partial_: true)"
+                )
+            self.controllers[name] = make
+        self.other_plants = dict(other_plants or {})
         self.model_path = model_path
         if prediction_window_steps < 1 or prediction_window_s <= 0:
             raise ValueError(
@@ -77,7 +97,31 @@ class Pipeline:
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
         sections: dict[str, Any] = {"data": data_metrics}
+        learner, sections["training"] = self._learner(dataset, recorder, output_dir)
+        sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
+        if getattr(getattr(learner, "random_layer", None), "enabled", False):
+            repeated = robustness(
+                {self.learner_name: learner},
+                dataset.test,
+                self.robustness_repeats,
+                recorder=recorder,
+                output_dir=output_dir,
+            )
+            sections["robustness"] = _one_learner(repeated, self.learner_name)
+        tracking = self._track(learner, plant, dataset.test[0], recorder, output_dir)
+        if tracking is not None:
+            sections["tracking"] = tracking
+        if self.other_plants:
+            sections["generalization"] = {
+                name: self._generalize(name, other, learner, dataset, recorder, output_dir)
+                for name, other in self.other_plants.items()
+            }
+        return sections
 
+    def _learner(
+        self, dataset: Dataset, recorder: Recorder, output_dir: Path
+    ) -> tuple[Learner, dict[str, Any]]:
+        """Fit (or load ``model_path``), save the model and its loss curves."""
         start = time.perf_counter()
         if self.model_path:
             learner = load_learner(self.model_path)
@@ -93,7 +137,10 @@ class Pipeline:
             source = "trained"
         fit_time = time.perf_counter() - start
         model_file = learner.save(output_dir / f"model_{self.learner_name}.pt")
-        sections["training"] = {
+        history = getattr(learner, "history_", None)
+        if history is not None:
+            write_json_atomic(output_dir / "training_history.json", history.to_dict())
+        return learner, {
             "learner": self.learner_name,
             "source": source,
             "fit_time_s": fit_time,
@@ -101,53 +148,93 @@ class Pipeline:
             "train_frames": sum(len(e) for e in dataset.train),
         }
 
+    def _predict(
+        self,
+        learner: Learner,
+        episodes: Sequence[Episode],
+        recorder: Recorder,
+        output_dir: Path,
+        prefix: str = "",
+    ) -> dict[str, Any]:
         predictions = evaluate(
             {self.learner_name: learner},
-            dataset.test,
+            episodes,
             window_steps=self.window_steps,
             window_seconds=self.window_s,
             recorder=recorder,
             output_dir=output_dir,
+            prefix=prefix,
         )
-        sections["prediction"] = _one_learner(predictions, self.learner_name)
-        if getattr(getattr(learner, "random_layer", None), "enabled", False):
-            repeated = robustness(
-                {self.learner_name: learner},
-                dataset.test,
-                self.robustness_repeats,
-                recorder=recorder,
-                output_dir=output_dir,
-            )
-            sections["robustness"] = _one_learner(repeated, self.learner_name)
+        return _one_learner(predictions, self.learner_name)
 
-        if self.make_controller is None or not self.references:
-            return sections
+    def _track(
+        self,
+        learner: Learner,
+        plant: Sedan,
+        episode: Episode,
+        recorder: Recorder,
+        output_dir: Path,
+        prefix: str = "",
+    ) -> dict[str, Any] | None:
+        """Every controller on every reference; the first controller's runs are the top level."""
+        if not self.controllers or not self.references:
+            return None
         if not isinstance(learner, KoopmanLearner):
-            sections["tracking"] = {"skipped": f"{self.learner_name} is not a lifted-linear model"}
-            return sections
-        runs: dict[str, Any] = {}
-        for name in self.references:
-            if name == "test_episode":
-                episode = dataset.test[0]
-                label, reference = f"test_episode/{episode.name}", references.from_episode(episode)
-            else:
-                label = name
-                reference = references.double_lane_change(self.lane_change_speed, dt=plant.dt)
-            controller = self.make_controller(learner)
-            metrics, _ = track(
-                plant,
-                controller,
-                reference,
-                name=f"tracking/{label}",
-                recorder=recorder,
-                figure_path=output_dir / f"tracking_{name}.png",
-            )
-            metrics["horizon"] = {"Np": controller.Np, "Nc": controller.Nc}
-            runs[label] = metrics
-            log.info("tracked %s: rmse %s", label, metrics["rmse"])
-        first = next(iter(runs.values()))
-        sections["tracking"] = {**first, "reference": next(iter(runs)), "references": runs}
-        return sections
+            return {"skipped": f"{self.learner_name} is not a lifted-linear model"}
+        by_controller: dict[str, dict[str, Any]] = {}
+        for controller_name, make_controller in self.controllers.items():
+            runs: dict[str, Any] = {}
+            for name in self.references:
+                if name == "test_episode":
+                    label = f"test_episode/{episode.name}"
+                    reference = references.from_episode(episode)
+                else:
+                    label = name
+                    reference = references.double_lane_change(self.lane_change_speed, dt=plant.dt)
+                controller = make_controller(learner)
+                stem = f"tracking_{controller_name}_{name}"
+                metrics, _ = track(
+                    plant,
+                    controller,
+                    reference,
+                    name=f"{prefix}tracking/{controller_name}/{label}",
+                    recorder=recorder,
+                    figure_path=output_dir / f"{stem}.png",
+                    arrays_path=output_dir / f"{stem}.npz",
+                )
+                metrics["horizon"] = {"Np": controller.Np, "Nc": controller.Nc}
+                runs[label] = metrics
+                log.info(
+                    "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
+                )
+            by_controller[controller_name] = runs
+        first = next(iter(by_controller.values()))
+        return {
+            **next(iter(first.values())),
+            "reference": next(iter(first)),
+            "references": first,
+            "controllers": by_controller,
+        }
+
+    def _generalize(
+        self,
+        name: str,
+        plant: Sedan,
+        learner: Learner,
+        dataset: Dataset,
+        recorder: Recorder,
+        output_dir: Path,
+    ) -> dict[str, Any]:
+        """The model of this run's plant, on the test drives driven again on ``plant``."""
+        episodes = drive_again(plant, self.data, dataset.test)
+        directory = output_dir / "generalization" / name
+        directory.mkdir(parents=True, exist_ok=True)
+        prefix = f"generalization/{name}/"
+        result = {"prediction": self._predict(learner, episodes, recorder, directory, prefix)}
+        tracking = self._track(learner, plant, episodes[0], recorder, directory, prefix)
+        if tracking is not None:
+            result["tracking"] = tracking
+        return result
 
 
 def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str, Any]:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.artifacts import save_arrays
 from harness.data.episode import Episode
 from harness.figures import save_figure
 from harness.recorder import Recorder
@@ -100,13 +101,14 @@ def evaluate(
     window_seconds: float = 10.0,
     recorder: Recorder | None = None,
     output_dir: Path | None = None,
+    prefix: str = "",
 ) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
     """RMSEs of every learner on every episode: ``{learner: {episode: {metric: {state: v}}}}``.
 
     Metrics: ``rmse``, ``rmse_window_<window_steps>``, ``rmse_window_<window_seconds>s`` (see
     the module docstring). Writes ``prediction_<episode>.png`` (truth and every learner's
     open-loop prediction, as the paper's figure) into ``output_dir`` and one recording per
-    episode (``prediction/<episode>``, predictions as ``extra/predicted_<learner>``).
+    episode (``<prefix>prediction/<episode>``, predictions as ``extra/predicted_<learner>``).
     Use :func:`by_episode` for ``{episode: {learner: ...}}``.
     """
     recorder = recorder or Recorder()
@@ -127,7 +129,7 @@ def evaluate(
                 seconds_key: rmse(*_pair(windowed(learner, episode, seconds_steps), episode)),
             }
         recorder.rollout(
-            f"prediction/{episode.name}",
+            f"{prefix}prediction/{episode.name}",
             episode.time_s,
             episode.states,
             episode.inputs,
@@ -137,6 +139,14 @@ def evaluate(
         if output_dir is not None:
             plot_prediction(
                 episode, predictions, Path(output_dir) / f"prediction_{episode.name}.png"
+            )
+            save_arrays(
+                Path(output_dir) / f"prediction_{episode.name}.npz",
+                time_s=episode.time_s,
+                states=episode.states,
+                inputs=episode.inputs,
+                poses=episode.poses,
+                **{f"predicted_{name}": p for name, p in predictions.items()},
             )
     return results
 
@@ -157,6 +167,7 @@ def robustness(
     *,
     recorder: Recorder | None = None,
     output_dir: Path | None = None,
+    prefix: str = "",
 ) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
     """Open-loop RMSE over ``repeats`` predictions, each with a freshly drawn random layer.
 

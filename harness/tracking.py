@@ -32,6 +32,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from harness.artifacts import load_arrays, save_arrays
 from harness.figures import save_figure
 from harness.plant import INPUT_NAMES, STATE_NAMES
 from harness.recorder import Recorder
@@ -72,8 +73,13 @@ def track(
     name: str,
     recorder: Recorder,
     figure_path: Path | None = None,
+    arrays_path: Path | None = None,
 ) -> tuple[dict[str, Any], TrackingTrajectory]:
-    """Track ``reference`` ((T, 3) states at plant.dt) from rest-or-rolling at its first speed."""
+    """Track ``reference`` ((T, 3) states at plant.dt) from rest-or-rolling at its first speed.
+
+    ``figure_path``: the tracking figure; ``arrays_path``: the run as ``.npz`` (see
+    :func:`save_run`), which a sweep's report overlays across learners.
+    """
     reference = np.asarray(reference, dtype=float)
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
         raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
@@ -108,7 +114,38 @@ def track(
     _record(recorder, name, run, plant.dt)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)
+    if arrays_path is not None:
+        save_run(run, arrays_path)
     return metrics, run
+
+
+def save_run(run: TrackingTrajectory, path: Path) -> Path:
+    """The run's arrays (no predicted horizons: they are large and in the recording)."""
+    return save_arrays(
+        path,
+        time_s=run.time_s,
+        states=run.states,
+        inputs=run.inputs,
+        poses=run.poses,
+        reference=run.reference,
+        solve_time_s=run.solve_time_s,
+    )
+
+
+def load_run(path: Path) -> TrackingTrajectory:
+    """A run written by :func:`save_run`."""
+    arrays = load_arrays(path)
+    try:
+        return TrackingTrajectory(
+            arrays["time_s"],
+            arrays["states"],
+            arrays["inputs"],
+            arrays["poses"],
+            arrays["reference"],
+            solve_time_s=arrays["solve_time_s"],
+        )
+    except KeyError as error:
+        raise ValueError(f"{path} lacks {error}; it was not written by save_run") from error
 
 
 def tracking_metrics(run: TrackingTrajectory, dt: float, solver_failures: int) -> dict[str, Any]:

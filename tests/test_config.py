@@ -68,3 +68,41 @@ def test_a_wrong_plant_value_names_its_key(override: str, key: str) -> None:
     error = info.value.__cause__ or info.value
     assert isinstance(error, ValueError)
     assert key in str(error) and "\n" not in str(error)
+
+
+def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_horizons() -> None:
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(
+            config_name="config", overrides=["experiment=paper"], return_hydra_config=True
+        )
+    params = cfg.hydra.sweeper.params
+    assert params.seed == "0,1,2"
+    assert set(params.learner.split(",")) == {
+        "edmd",
+        "elm_edmd",
+        "dnn",
+        "deep_edmd",
+        "dnn_random_layer",
+        "deep_edmd_random_layer",
+    }
+    assert cfg.data.episodes == 40
+    assert (cfg.controller.Np, cfg.controller.Nc) == (10, 7)
+    long = cfg.task.extra_controllers.de_mpc_long
+    assert (long.Np, long.Nc) == (60, 50)
+
+
+def test_random_layer_learners_are_their_base_learner_with_the_layer_on() -> None:
+    for name in ("dnn", "deep_edmd"):
+        base = compose_config(f"learner={name}").learner
+        variant = compose_config(f"learner={name}_random_layer").learner
+        assert variant.random_layer.enabled and not base.random_layer.enabled
+        assert variant._target_ == base._target_ and variant.training == base.training
+
+
+def test_experiment_generalization_evaluates_on_the_wet_and_loaded_plants() -> None:
+    cfg = compose_config("experiment=generalization")
+    others = cfg.task.other_plants
+    assert set(others) == {"sedan_wet", "sedan_loaded"}
+    assert others.sedan_wet.tire.road_friction == 0.5
+    assert others.sedan_loaded.chassis.payload_kg == 300.0
+    assert cfg.plant.name == "sedan"

@@ -60,7 +60,9 @@ def test_metrics_follow_the_public_contract(edmd_run) -> None:
     for figure in (
         "data_coverage.png",
         f"prediction_{test_episode}.png",
-        "tracking_test_episode.png",
+        "tracking_de_mpc_test_episode.png",
+        "tracking_de_mpc_test_episode.npz",
+        f"prediction_{test_episode}.npz",
     ):
         assert (run_dir / figure).exists(), figure
 
@@ -94,3 +96,27 @@ def test_a_non_koopman_learner_skips_tracking_and_says_why(tmp_path: Path) -> No
         "learner.training.eval_every_steps=10",
     )
     assert "not a lifted-linear model" in metrics["tracking"]["skipped"]
+
+
+def test_generalization_evaluates_the_model_on_other_plants_at_every_horizon(
+    tmp_path: Path,
+) -> None:
+    metrics = run_main(
+        tmp_path,
+        tmp_path / "general",
+        "learner=edmd",
+        "experiment=generalization",
+        "+controller@task.extra_controllers.de_mpc_long=de_mpc_long",
+    )
+    (episode,) = metrics["data"]["split"]["test"]
+    assert set(metrics["tracking"]["controllers"]) == {"de_mpc", "de_mpc_long"}
+    long = metrics["tracking"]["controllers"]["de_mpc_long"][f"test_episode/{episode}"]
+    assert long["horizon"] == {"Np": 60, "Nc": 50}
+    nominal = metrics["prediction"][episode]["rmse"]
+    for plant in ("sedan_wet", "sedan_loaded"):
+        other = metrics["generalization"][plant]
+        assert other["prediction"][episode]["rmse"] != nominal  # another plant, other drives
+        assert set(other["tracking"]["controllers"]) == {"de_mpc", "de_mpc_long"}
+        assert (
+            tmp_path / "general" / "generalization" / plant / f"prediction_{episode}.npz"
+        ).exists()

@@ -384,3 +384,26 @@ def load(directory: Path | str) -> Dataset:
         splits["test"],
         MinMaxNormalizer.from_dict(manifest["normalizer"]),
     )
+
+
+def drive_again(plant: Sedan, data: DataConfig, episodes: Sequence[Episode]) -> list[Episode]:
+    """The same drives (episode seeds and lengths of ``data``) on another plant, not stored.
+
+    The driver is closed-loop (it reacts to speed and slip), so on a wet road it drives the same
+    intentions more gently; this is what a model trained on one plant meets on another.
+    """
+    lengths = data.episode_lengths()
+    again = []
+    for episode in episodes:
+        index = int(episode.name.rsplit("_", 1)[-1])
+        arrays = drive_episode(plant.params, data, index, lengths[index])
+        again.append(
+            Episode(
+                episode.name,
+                arrays["time_s"],
+                arrays["states"],
+                arrays["inputs"],
+                arrays["poses"],
+            )
+        )
+    return again
