@@ -57,7 +57,7 @@ class TrainingConfig:
 
     Paper values: Adam, lr 1e-4, batch 64, ~1e5 batches. ``max_epochs`` None means no epoch
     limit; at least one of ``max_steps`` / ``max_epochs`` must be set. ``num_threads`` None uses
-    every core this process may run on.
+    :func:`default_threads`.
     """
 
     batch_size: int = 64
@@ -428,11 +428,21 @@ def plot_loss_curves(history: History, path: Path, title: str = "") -> Path:
     return save_figure(fig, path, dpi=120)
 
 
+def default_threads() -> int:
+    """``OMP_NUM_THREADS`` where a launcher set it (joblib's workers get cores / jobs), else
+    every core this process may run on: parallel jobs must not each take every core."""
+    cores = len(os.sched_getaffinity(0))
+    try:
+        return max(1, min(cores, int(os.environ.get("OMP_NUM_THREADS", cores))))
+    except ValueError:
+        return cores
+
+
 @contextlib.contextmanager
 def _torch_threads(count: int | None) -> Iterator[None]:
-    """Run with ``count`` intra-op threads (default: the cores available), then restore."""
+    """Run with ``count`` intra-op threads (default: :func:`default_threads`), then restore."""
     before = torch.get_num_threads()
-    torch.set_num_threads(count or len(os.sched_getaffinity(0)))
+    torch.set_num_threads(count or default_threads())
     _keep_freed_memory()
     try:
         yield

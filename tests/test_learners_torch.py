@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -319,3 +320,14 @@ def test_the_least_squares_refit_minimizes_the_one_step_lifted_residual(data: di
         return total
 
     assert residual(refit) < 0.5 * residual(trained)
+
+
+def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_cores(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from learners.training import default_threads
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert default_threads() == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert default_threads() == len(os.sched_getaffinity(0))
