@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from harness.report_figures import figures
+
 STATES = ("vx", "vy", "yaw_rate")
 
 
@@ -148,46 +150,65 @@ def prediction_table(jobs: list[Job], metric: str = "rmse") -> Table:
     return table
 
 
+def _tracking_runs(job: Job) -> Iterable[tuple[str, str, dict[str, Any]]]:
+    """(controller, reference, metrics) of every closed-loop run of a job; older jobs without
+    ``tracking.controllers`` give their one controller's runs."""
+    tracking = _get(job.metrics, "tracking") or {}
+    by_controller = tracking.get("controllers")
+    if not by_controller:
+        references = tracking.get("references") or (
+            {tracking.get("reference", "test_episode"): tracking} if "rmse" in tracking else {}
+        )
+        by_controller = {job.choice("controller", "de_mpc"): references}
+    for controller, runs in by_controller.items():
+        for label, metrics in runs.items():
+            if isinstance(metrics, Mapping) and "rmse" in metrics:
+                yield controller, label.split("/", 1)[0], metrics
+
+
 def tracking_table(jobs: list[Job]) -> Table:
     table = Table(
-        "DE-MPC tracking RMSE (first test episode; SI) and solve time (ms)",
+        "DE-MPC tracking RMSE on the plant (SI) and solve time of one control step (ms)",
         [
             "learner",
             "controller",
             "Np/Nc",
+            "reference",
             "variant",
             "jobs",
             *STATES,
             "solve median",
             "solve p99",
+            "solve max",
             "deadline misses",
             "solver failures",
         ],
     )
-    for (learner, controller, variant), members in _group(
-        jobs, ("learner", "deep_edmd"), ("controller", "de_mpc")
-    ).items():
-        tracked = [j for j in members if _get(j.metrics, "tracking", "rmse")]
-        if not tracked:
-            continue
-        horizon = _get(tracked[0].metrics, "tracking", "horizon") or {}
-        table.rows.append(
-            [
-                learner,
+    common = _common(jobs)
+    runs: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
+    for job in jobs:
+        for controller, reference, metrics in _tracking_runs(job):
+            horizon = metrics.get("horizon") or {}
+            key = (
+                job.choice("learner", "deep_edmd"),
                 controller,
                 f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
-                variant or "—",
-                str(len(tracked)),
-            ]
-            + [_mean_std(_get(j.metrics, "tracking", "rmse", s) for j in tracked) for s in STATES]
+                reference,
+                _variant(job, common) or "—",
+            )
+            runs[key].append(metrics)
+    order = {"test_episode": 0}
+    for key, members in sorted(
+        runs.items(), key=lambda kv: (kv[0][0], kv[0][1], order.get(kv[0][3], 1), kv[0][3:])
+    ):
+        table.rows.append(
+            [*key, str(len(members))]
+            + [_mean_std(_get(m, "rmse", s) for m in members) for s in STATES]
             + [
-                _mean_std(_get(j.metrics, "tracking", "solve_time_ms", q) for j in tracked)
-                for q in ("median", "p99")
+                _mean_std(_get(m, "solve_time_ms", q) for m in members)
+                for q in ("median", "p99", "max")
             ]
-            + [
-                _mean_std(_get(j.metrics, "tracking", k) for j in tracked)
-                for k in ("deadline_misses", "solver_failures")
-            ]
+            + [_mean_std(m.get(k) for m in members) for k in ("deadline_misses", "solver_failures")]
         )
     return table
 
@@ -211,19 +232,60 @@ def training_table(jobs: list[Job]) -> Table:
 
 def robustness_table(jobs: list[Job]) -> Table:
     table = Table(
-        "Random-layer robustness: RMSE mean (spread) over repeated predictions",
-        ["learner", "test episode", *STATES],
+        "Random-layer robustness: RMSE over 100 predictions with the layer redrawn, mean "
+        "(spread) per job, then mean ± std over jobs",
+        ["learner", "variant", "test episode", "jobs", *STATES],
     )
-    for job in jobs:
-        for episode, values in sorted((_get(job.metrics, "robustness") or {}).items()):
-            if not isinstance(values, Mapping):
-                continue
-            mean, spread = values.get("rmse_mean", {}), values.get("rmse_std", {})
+    for (learner, variant), members in _group(jobs, ("learner", "deep_edmd")).items():
+        episodes = sorted({e for j in members for e in (_get(j.metrics, "robustness") or {})})
+        for episode in episodes:
+            values = [_get(j.metrics, "robustness", episode) for j in members]
+            present = [v for v in values if isinstance(v, Mapping)]
             table.rows.append(
-                [job.choice("learner", "deep_edmd"), episode]
+                [learner, variant or "—", episode, str(len(present))]
                 + [
-                    f"{mean.get(s, float('nan')):.4g} ({spread.get(s, float('nan')):.2g})"
+                    f"{_mean_std(_get(v, 'rmse_mean', s) for v in present)} "
+                    f"({_mean_std(_get(v, 'rmse_std', s) for v in present)})"
                     for s in STATES
+                ]
+            )
+    return table
+
+
+def generalization_table(jobs: list[Job]) -> Table:
+    """Each model on its own plant and on the others (``experiment=generalization``)."""
+    table = Table(
+        "Generalization: trained on one plant, evaluated on others — open-loop prediction RMSE "
+        "(mean over test episodes) and DE-MPC tracking RMSE of the first test episode (SI)",
+        ["learner", "trained on", "evaluated on", "variant", "jobs"]
+        + [f"prediction {s}" for s in STATES]
+        + [f"tracking {s}" for s in STATES],
+    )
+    evaluated = [j for j in jobs if _get(j.metrics, "generalization")]
+    if not evaluated:
+        return table
+    for (learner, plant, variant), members in _group(
+        evaluated, ("learner", "deep_edmd"), ("plant", "sedan")
+    ).items():
+        targets = {plant: [(j.metrics or {}) for j in members]}
+        for job in members:
+            for other, section in (_get(job.metrics, "generalization") or {}).items():
+                targets.setdefault(other, []).append(section)
+        for target, sections in targets.items():
+
+            def prediction(section: Mapping[str, Any], state: str) -> float | None:
+                per_episode = [
+                    _get(v, "rmse", state) for v in (section.get("prediction") or {}).values()
+                ]
+                numbers = [v for v in per_episode if v is not None]
+                return sum(numbers) / len(numbers) if numbers else None
+
+            table.rows.append(
+                [learner, plant, target, variant or "—", str(len(sections))]
+                + [_mean_std(prediction(s, state) for s in sections) for state in STATES]
+                + [
+                    _mean_std(_get(s, "tracking", "rmse", state) for s in sections)
+                    for state in STATES
                 ]
             )
     return table
@@ -251,6 +313,7 @@ def report(sweep_dir: Path) -> Path:
         "prediction_window_10s": prediction_table(finished, "rmse_window_10s"),
         "tracking": tracking_table(finished),
         "robustness": robustness_table(finished),
+        "generalization": generalization_table(finished),
         "training": training_table(finished),
         "failures": failures_table(jobs),
     }
@@ -270,6 +333,11 @@ def report(sweep_dir: Path) -> Path:
             writer = csv.writer(handle)
             writer.writerow(table.columns)
             writer.writerows(table.rows)
+    written = figures(finished, out)
+    if written:
+        sections += ["### Figures", ""]
+        sections += [f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in written]
+        sections.append("")
     markdown = out / "report.md"
     markdown.write_text("\n".join(sections))
     return markdown

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -87,3 +88,36 @@ def test_a_job_without_metrics_is_named(tiny_sweep: Path, tmp_path: Path) -> Non
 def test_an_empty_directory_is_refused_in_one_line(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="no Hydra job directories"):
         report(tmp_path)
+
+
+def test_the_report_redraws_the_paper_figures_with_every_learner(tiny_sweep: Path) -> None:
+    text = report(tiny_sweep).read_text()
+    out = tiny_sweep / "report"
+    (episode,) = {p.stem.removeprefix("prediction_") for p in tiny_sweep.rglob("prediction_*.npz")}
+    prediction = next(out.glob(f"prediction_{episode}*.png"))
+    assert f"({prediction.name})" in text  # linked from report.md
+    tracking = sorted(p.name for p in out.glob("tracking_de_mpc_*.png"))
+    assert any(n.startswith("tracking_de_mpc_test_episode") for n in tracking), tracking
+
+
+def test_loss_curves_show_every_seed_of_every_trained_network(tmp_path: Path) -> None:
+    from harness.report import Job
+    from harness.report_figures import loss_figure
+
+    jobs = []
+    for learner in ("dnn", "deep_edmd"):
+        for seed in (0, 1):
+            path = tmp_path / f"{learner}-{seed}"
+            path.mkdir()
+            history = {
+                "step": [10, 20],
+                "epoch": [0, 1],
+                "train": [1.0, 0.5],
+                "validation": [{"loss": 1.1}, {"loss": 0.6}],
+                "stopped": "max_steps",
+            }
+            (path / "training_history.json").write_text(json.dumps(history))
+            jobs.append(Job(path, {"learner": learner, "seed": str(seed)}))
+    figure = loss_figure(jobs, tmp_path)
+    assert figure is not None and figure.stat().st_size > 10_000
+    assert loss_figure([Job(tmp_path / "edmd", {"learner": "edmd"})], tmp_path) is None

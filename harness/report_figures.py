@@ -1,0 +1,184 @@
+"""The paper's figures from a sweep: every learner on one plot, redrawn from the jobs' arrays.
+
+Jobs that differ only by learner (and its ``learner.*`` settings) and seed share a figure;
+each learner is drawn from its lowest seed (the figures show one run each, the tables show the
+spread over seeds):
+
+- ``prediction_<episode>.png``: the measured test drive and every learner's open-loop
+  prediction (from ``prediction_<episode>.npz``);
+- ``tracking_<controller>_<reference>.png``: the reference and every Koopman learner's
+  closed-loop run on the plant (from ``tracking_<controller>_<reference>.npz``);
+- ``loss_curves.png``: training and validation loss of every trained network, one line per
+  seed (from ``training_history.json``).
+
+A group of jobs that differ in something else (a plant, a horizon) gets a suffix naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import defaultdict
+from collections.abc import Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+from harness.artifacts import load_arrays
+from harness.data.episode import Episode
+from harness.figures import save_figure
+from harness.prediction import plot_prediction
+from harness.tracking import load_run, plot_tracking
+
+if TYPE_CHECKING:
+    from harness.report import Job
+
+log = logging.getLogger(__name__)
+
+_ACROSS = {"learner", "seed"}
+
+
+def _seed(job: Job) -> int:
+    try:
+        return int(job.overrides.get("seed", 0))
+    except ValueError:
+        return 0
+
+
+def _groups(jobs: Iterable[Job]) -> dict[str, list[Job]]:
+    """Jobs by what they share besides learner and seed; the key is a filename suffix."""
+    groups: dict[str, list[Job]] = defaultdict(list)
+    for job in jobs:
+        rest = sorted((k, v) for k, v in job.overrides.items() if not _describes_learner(k))
+        groups[",".join(f"{k}={v}" for k, v in rest)].append(job)
+    # Overrides every group shares (e.g. experiment=paper) do not name the figure.
+    keys = list(groups)
+    if len(keys) == 1:
+        return {"": groups[keys[0]]}
+    shared = set.intersection(*(set(k.split(",")) for k in keys))
+    return {
+        _suffix(",".join(p for p in k.split(",") if p not in shared)): v for k, v in groups.items()
+    }
+
+
+def _describes_learner(key: str) -> bool:
+    """The learner, its settings and the seed are drawn within one figure, not across."""
+    return key in _ACROSS or key.startswith("learner.")
+
+
+def _suffix(text: str) -> str:
+    safe = "".join(c if c.isalnum() or c in "-_.=" else "_" for c in text)
+    return f"__{safe}" if safe else ""
+
+
+def _lowest_seed_per_learner(jobs: Iterable[Job]) -> dict[str, Job]:
+    chosen: dict[str, Job] = {}
+    for job in sorted(jobs, key=_seed):
+        chosen.setdefault(job.overrides.get("learner", "deep_edmd"), job)
+    return dict(sorted(chosen.items()))
+
+
+def prediction_figures(jobs: list[Job], out: Path, subdir: str = "") -> list[Path]:
+    """One figure per test episode (per group): the drive and every learner's prediction."""
+    written = []
+    for suffix, members in _groups(jobs).items():
+        per_episode: dict[str, dict[str, object]] = defaultdict(dict)
+        episodes: dict[str, Episode] = {}
+        for learner, job in _lowest_seed_per_learner(members).items():
+            for path in sorted((job.path / subdir).glob("prediction_*.npz")):
+                name = path.stem.removeprefix("prediction_")
+                try:
+                    arrays = load_arrays(path)
+                except ValueError as error:
+                    log.warning("%s", error)
+                    continue
+                episodes.setdefault(
+                    name,
+                    Episode(
+                        name, arrays["time_s"], arrays["states"], arrays["inputs"], arrays["poses"]
+                    ),
+                )
+                predicted = [k for k in arrays if k.startswith("predicted_")]
+                if predicted:
+                    per_episode[name][learner] = arrays[predicted[0]]
+        for name, predictions in sorted(per_episode.items()):
+            path = out / subdir / f"prediction_{name}{suffix}.png"
+            written.append(plot_prediction(episodes[name], predictions, path))
+    return written
+
+
+def tracking_figures(jobs: list[Job], out: Path, subdir: str = "") -> list[Path]:
+    """One figure per controller and reference (per group): every learner's closed loop."""
+    written = []
+    for suffix, members in _groups(jobs).items():
+        runs: dict[str, dict[str, object]] = defaultdict(dict)
+        for learner, job in _lowest_seed_per_learner(members).items():
+            for path in sorted((job.path / subdir).glob("tracking_*.npz")):
+                try:
+                    runs[path.stem][learner] = load_run(path)
+                except ValueError as error:
+                    log.warning("%s", error)
+        for stem, by_learner in sorted(runs.items()):
+            path = out / subdir / f"{stem}{suffix}.png"
+            plot_tracking(by_learner, path)
+            written.append(path)
+    return written
+
+
+def loss_figure(jobs: list[Job], out: Path) -> Path | None:
+    """Loss curves of every trained network, a panel per learner, a colour per seed."""
+    histories: dict[str, list[tuple[int, dict]]] = defaultdict(list)
+    for suffix, members in _groups(jobs).items():
+        for job in sorted(members, key=_seed):
+            path = job.path / "training_history.json"
+            if not path.exists():
+                continue
+            try:
+                history = json.loads(path.read_text())
+            except json.JSONDecodeError:
+                log.warning("%s is not valid JSON; its loss curve is left out", path)
+                continue
+            label = job.overrides.get("learner", "deep_edmd")
+            if suffix:
+                label += f" ({suffix.removeprefix('__')})"
+            histories[label].append((_seed(job), history))
+    if not histories:
+        return None
+    fig, axes = plt.subplots(
+        len(histories), 1, figsize=(8, 2.6 * len(histories)), squeeze=False, sharex=True
+    )
+    for ax, (label, runs) in zip(axes[:, 0], sorted(histories.items()), strict=True):
+        for k, (seed, history) in enumerate(runs):
+            steps = history["step"]
+            validation = [v.get("loss") if v else None for v in history["validation"]]
+            ax.semilogy(steps, history["train"], "--", color=f"C{k}", lw=0.9)
+            ax.semilogy(steps, validation, color=f"C{k}", lw=1.2, label=f"seed {seed}")
+        ax.set_title(f"{label}: validation (solid) and training (dashed) loss", fontsize=9)
+        ax.set_ylabel("loss")
+        ax.legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("training step (batches)")
+    fig.tight_layout()
+    return save_figure(fig, out / "loss_curves.png")
+
+
+def figures(jobs: list[Job], out: Path) -> list[Path]:
+    """Every figure of the sweep's finished ``jobs`` into ``out``; returns the files written.
+
+    Runs evaluated on other plants (``generalization/<plant>/``) get the same figures under
+    ``out/generalization/<plant>/``.
+    """
+    subdirs = {""} | {
+        str(path.relative_to(job.path))
+        for job in jobs
+        for path in (job.path / "generalization").glob("*")
+        if path.is_dir()
+    }
+    written = []
+    for subdir in sorted(subdirs):
+        written += prediction_figures(jobs, out, subdir) + tracking_figures(jobs, out, subdir)
+    loss = loss_figure(jobs, out)
+    return [*written, loss] if loss else written
