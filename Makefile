@@ -3,10 +3,10 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: help setup run test bench format lint
+.PHONY: help setup run test test-ray bench format lint
 
 help:  ## list the targets
-	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +25,10 @@ run: setup  ## run the main job (results under outputs/<date>/<time>/)
 test: setup  ## lint, then the test suite (slow tests excluded)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
+
+test-ray: setup  ## the Ray launcher's tests (installs the `ray` extra: ~60 packages, ~2 min)
+	$(BIN)/pip install --quiet -e '.[dev,ray]'
+	$(BIN)/python -m pytest tests/test_launchers.py -m '' --durations=0
 
 bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxpy)
 	$(BIN)/pip install --quiet -e '.[dev,bench]'

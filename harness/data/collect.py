@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.data import coverage
-from harness.data.store import DataConfig, Dataset, collect, load
+from harness.data.store import DataConfig, Dataset, collect_counted, load
 from harness.plant import Sedan
 from harness.recorder import Recorder
 
@@ -16,7 +16,8 @@ def prepare(
     plant: Sedan, data: DataConfig, recorder: Recorder, output_dir: Path
 ) -> tuple[Dataset, dict]:
     """Collect or reuse; write the coverage figure; record every episode; return the summary."""
-    dataset = load(collect(plant.params, data))
+    directory, collected = collect_counted(plant.params, data)
+    dataset = load(directory)
     splits = {"train": dataset.train, "validation": dataset.validation, "test": dataset.test}
     coverage.plot(splits, plant.params.tire.road_friction, output_dir / "data_coverage.png")
     step = data.record_every
@@ -35,6 +36,8 @@ def prepare(
         "path": str(dataset.path),
         "split": {s: [e.name for e in episodes] for s, episodes in splits.items()},
         "spun_episodes": sorted(n for n, v in dataset.manifest["episodes"].items() if v["spun"]),
+        # Episodes this job drove; 0: stored already (or by another job of the sweep).
+        "episodes_collected": collected,
         "coverage": coverage.summary(dataset.episodes(), plant.params.tire.road_friction),
         "normalizer": dataset.normalizer.to_dict(),
     }

@@ -26,11 +26,11 @@ import math
 import os
 import platform
 from collections.abc import Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
-from multiprocessing import get_context
+from multiprocessing import get_context, get_start_method
 from pathlib import Path
 from typing import Any
 
@@ -263,6 +263,17 @@ def _collect_one(args: tuple[SedanParams, DataConfig, int, int, str]) -> tuple[i
     return index, _sha256(path), len(episode["time_s"]), bool(episode["spun"])
 
 
+def _executor(workers: int) -> Executor:
+    """Spawned worker processes; in-process (one thread) where spawning cannot work.
+
+    A job run by a process-based launcher (joblib's loky workers) has a start method that a
+    freshly spawned child cannot restore; there the sweep's other jobs keep the cores busy.
+    """
+    if workers > 1 and get_start_method(allow_none=True) in (None, "spawn", "fork", "forkserver"):
+        return ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+    return ThreadPoolExecutor(1)
+
+
 def _read_manifest(directory: Path) -> dict[str, Any]:
     path = directory / "manifest.json"
     try:
@@ -287,6 +298,17 @@ def _verify(directory: Path, manifest: dict[str, Any]) -> None:
 
 def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = True) -> Path:
     """Make sure the dataset for this configuration exists and is intact; return its directory."""
+    return collect_counted(plant_params, data, progress=progress)[0]
+
+
+def collect_counted(
+    plant_params: SedanParams, data: DataConfig, *, progress: bool = True
+) -> tuple[Path, int]:
+    """``collect``, also returning how many episodes this call drove (0: all were reused).
+
+    Concurrent callers (the jobs of a parallel sweep) queue on the dataset's lock: the first
+    drives the episodes, the others find them stored and drive none.
+    """
     key = content_key(plant_params, data)
     directory = dataset_root(data) / key
     directory.mkdir(parents=True, exist_ok=True)
@@ -321,7 +343,7 @@ def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = Tru
                 smoothing=0.1,
             )
             workers = min(data.workers, len(todo))
-            with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            with _executor(workers) as pool:
                 futures = [
                     pool.submit(_collect_one, (plant_params, data, i, lengths[i], str(directory)))
                     for i in todo
@@ -350,7 +372,7 @@ def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = Tru
             manifest["normalizer"] = MinMaxNormalizer.fit(train).to_dict()
             manifest["complete"] = True
             _write_manifest(directory, manifest)
-    return directory
+    return directory, len(todo)
 
 
 def _load_episode(directory: Path, name: str, manifest: dict[str, Any]) -> Episode:
