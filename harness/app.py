@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import sys
 import traceback
@@ -12,12 +13,27 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.types import RunMode
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from harness.metrics import update_metrics, write_json_atomic
 from harness.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
+
+JOB_DIRNAME_BYTES = 200  # file names may have 255 bytes; Hydra adds nothing to the sweep subdir
+
+
+def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
+    """A sweep job's directory: its overrides, cut to ``limit`` bytes plus a hash when longer
+    (the full list is always in the job's ``.hydra/overrides.yaml``)."""
+    raw = overrides.encode()
+    if len(raw) <= limit:
+        return overrides
+    digest = hashlib.sha256(raw).hexdigest()[:10]
+    return raw[: limit - len(digest) - 1].decode(errors="ignore") + "~" + digest
+
+
+OmegaConf.register_new_resolver("job_dirname", job_dirname, replace=True)
 
 
 def run(cfg: DictConfig, output_dir: Path) -> dict:

@@ -90,3 +90,13 @@ def test_collect_task_writes_coverage_metrics_figure_and_recording(tmp_path: Pat
     assert data["coverage"]["episodes"] == 3 and data["coverage"]["frames"] > 300
     assert Path(data["path"]).parent == tmp_path / "datasets"
     assert (run_dir / "data_coverage.png").exists() and (run_dir / "collect.rrd").exists()
+
+
+def test_a_long_override_list_still_makes_a_valid_distinct_job_directory() -> None:
+    from harness.app import job_dirname
+
+    short = "learner=edmd,seed=0"
+    assert job_dirname(short) == short
+    long_a, long_b = ("x" * 300 + "=1"), ("x" * 300 + "=2")
+    names = {job_dirname(long_a), job_dirname(long_b)}
+    assert len(names) == 2 and all(len(n.encode()) <= 200 for n in names)
