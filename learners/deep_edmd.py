@@ -345,13 +345,27 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         return torch.cat([x_n, phi], -1) if self.lifted_includes_state else phi
 
     def _after_training(self, train: Sequence[Episode]) -> None:
+        if self.refit_koopman_lstsq:
+            self.refit_koopman(train)
+        self._read_matrices(train)
+
+    def refit_koopman(self, train: Sequence[Episode]) -> DeepEDMD:
+        """Replace A, B by the least-squares fit of z_{k+1} = A z_k + B u_k on the lifted
+        training data, keeping the encoder and decoder (``refit_koopman_lstsq``; also usable on
+        a trained or loaded model). The trained A, B serve the decoder's multi-step loss; the
+        refit makes C z, what DE-MPC predicts with, accurate over its horizon."""
+        views = self.params_.views()
+        theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
+        size = theta.shape[1]
+        views["koopman.A.weight"].copy_(torch.from_numpy(theta[:size].T))
+        views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
+        self.refit_koopman_lstsq = True
+        self._read_matrices(train)
+        return self
+
+    def _read_matrices(self, train: Sequence[Episode]) -> None:
         views = self.params_.views()
         n = self.normalizer_.state_min.shape[0]
-        if self.refit_koopman_lstsq:
-            theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
-            size = theta.shape[1]
-            views["koopman.A.weight"].copy_(torch.from_numpy(theta[:size].T))
-            views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
         self.A_ = views["koopman.A.weight"].double().numpy().copy()
         self.B_ = views["koopman.B.weight"].double().numpy().copy()
         if self.lifted_includes_state:

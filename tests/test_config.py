@@ -84,6 +84,7 @@ def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_h
         "deep_edmd",
         "dnn_random_layer",
         "deep_edmd_random_layer",
+        "deep_edmd_lstsq",
     }
     assert cfg.data.episodes == 40
     assert (cfg.controller.Np, cfg.controller.Nc) == (10, 7)

@@ -320,6 +320,11 @@ def test_the_least_squares_refit_minimizes_the_one_step_lifted_residual(data: di
         return total
 
     assert residual(refit) < 0.5 * residual(trained)
+    # the refit is a post-processing of the same network: applied to a trained model it gives
+    # exactly what training with refit_koopman_lstsq gives
+    afterwards = trained.refit_koopman(data["train"])
+    np.testing.assert_array_equal(afterwards.A_, refit.A_)
+    np.testing.assert_array_equal(afterwards.B_, refit.B_)
 
 
 def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_cores(
