@@ -24,7 +24,7 @@ TINY = {
     "edmd": lambda: EDMD(num_centers=50),
     "elm_edmd": lambda: ELMEDMD(num_features=50),
     "dnn": lambda: DNN(
-        hidden=[32, 32],
+        hidden=[64, 64],
         horizon=20,
         training={
             "max_steps": 2000,
