@@ -24,11 +24,11 @@ JOB_DIRNAME_BYTES = 200  # file names may have 255 bytes; Hydra adds nothing to 
 
 
 def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
-    """A sweep job's directory: its overrides, cut to ``limit`` bytes plus a hash when longer
-    (the full list is always in the job's ``.hydra/overrides.yaml``)."""
-    raw = overrides.encode()
+    """A sweep job's directory: its overrides with ``/`` (a path in a value) as ``_``, cut to
+    ``limit`` bytes plus a hash when longer (the full list is in ``.hydra/overrides.yaml``)."""
+    raw = overrides.replace("/", "_").encode()
     if len(raw) <= limit:
-        return overrides
+        return raw.decode()
     digest = hashlib.sha256(raw).hexdigest()[:10]
     return raw[: limit - len(digest) - 1].decode(errors="ignore") + "~" + digest
 

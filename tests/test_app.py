@@ -100,3 +100,4 @@ def test_a_long_override_list_still_makes_a_valid_distinct_job_directory() -> No
     long_a, long_b = ("x" * 300 + "=1"), ("x" * 300 + "=2")
     names = {job_dirname(long_a), job_dirname(long_b)}
     assert len(names) == 2 and all(len(n.encode()) <= 200 for n in names)
+    assert job_dirname("task.model_path=/runs/a/model.pt") == "task.model_path=_runs_a_model.pt"
