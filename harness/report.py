@@ -252,18 +252,38 @@ def robustness_table(jobs: list[Job]) -> Table:
     return table
 
 
+def _mean_prediction(section: Mapping[str, Any], state: str) -> float | None:
+    """Open-loop RMSE of one state averaged over a section's test episodes."""
+    per_episode = [_get(v, "rmse", state) for v in (section.get("prediction") or {}).values()]
+    numbers = [v for v in per_episode if v is not None]
+    return sum(numbers) / len(numbers) if numbers else None
+
+
+def _first_controller_run(section: Mapping[str, Any], reference: str) -> dict[str, Any] | None:
+    """The first controller's run of ``reference`` (``test_episode`` matches its episode)."""
+    for label, metrics in (_get(section, "tracking", "references") or {}).items():
+        if label.split("/", 1)[0] == reference:
+            return metrics
+    return None
+
+
 def generalization_table(jobs: list[Job]) -> Table:
-    """Each model on its own plant and on the others (``experiment=generalization``)."""
+    """Each model on its own plant and on the others (``experiment=generalization``).
+
+    The test drives are driven again on each plant (the driver adapts to its grip), so their
+    columns compare a model with the drives each plant produces; the double lane change is the
+    same reference on every plant.
+    """
     table = Table(
         "Generalization: trained on one plant, evaluated on others — open-loop prediction RMSE "
-        "(mean over test episodes) and DE-MPC tracking RMSE of the first test episode (SI)",
+        "(mean over the test drives, driven again on each plant) and DE-MPC tracking RMSE of the "
+        "first test drive and of the double lane change (the same reference on every plant; SI)",
         ["learner", "trained on", "evaluated on", "variant", "jobs"]
         + [f"prediction {s}" for s in STATES]
-        + [f"tracking {s}" for s in STATES],
+        + [f"tracking test drive {s}" for s in STATES]
+        + [f"tracking lane change {s}" for s in STATES],
     )
     evaluated = [j for j in jobs if _get(j.metrics, "generalization")]
-    if not evaluated:
-        return table
     for (learner, plant, variant), members in _group(
         evaluated, ("learner", "deep_edmd"), ("plant", "sedan")
     ).items():
@@ -272,19 +292,16 @@ def generalization_table(jobs: list[Job]) -> Table:
             for other, section in (_get(job.metrics, "generalization") or {}).items():
                 targets.setdefault(other, []).append(section)
         for target, sections in targets.items():
-
-            def prediction(section: Mapping[str, Any], state: str) -> float | None:
-                per_episode = [
-                    _get(v, "rmse", state) for v in (section.get("prediction") or {}).values()
-                ]
-                numbers = [v for v in per_episode if v is not None]
-                return sum(numbers) / len(numbers) if numbers else None
-
+            runs = {
+                reference: [_first_controller_run(s, reference) for s in sections]
+                for reference in ("test_episode", "double_lane_change")
+            }
             table.rows.append(
                 [learner, plant, target, variant or "—", str(len(sections))]
-                + [_mean_std(prediction(s, state) for s in sections) for state in STATES]
+                + [_mean_std(_mean_prediction(s, state) for s in sections) for state in STATES]
                 + [
-                    _mean_std(_get(s, "tracking", "rmse", state) for s in sections)
+                    _mean_std(_get(run, "rmse", state) for run in runs[reference])
+                    for reference in ("test_episode", "double_lane_change")
                     for state in STATES
                 ]
             )

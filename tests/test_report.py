@@ -121,3 +121,31 @@ def test_loss_curves_show_every_seed_of_every_trained_network(tmp_path: Path) ->
     figure = loss_figure(jobs, tmp_path)
     assert figure is not None and figure.stat().st_size > 10_000
     assert loss_figure([Job(tmp_path / "edmd", {"learner": "edmd"})], tmp_path) is None
+
+
+def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others() -> None:
+    from harness.report import Job, generalization_table
+
+    def section(value: float) -> dict:
+        rmse = {"vx": value, "vy": value, "yaw_rate": value}
+        tracking = {
+            "references": {
+                "test_episode/episode_0001": {"rmse": rmse},
+                "double_lane_change": {"rmse": {k: 2 * v for k, v in rmse.items()}},
+            }
+        }
+        return {"prediction": {"episode_0001": {"rmse": rmse}}, "tracking": tracking}
+
+    jobs = [
+        Job(
+            Path(f"edmd-{seed}"),
+            {"learner": "edmd", "seed": str(seed)},
+            metrics={**section(1.0 + seed), "generalization": {"sedan_wet": section(3.0 + seed)}},
+        )
+        for seed in (0, 1)
+    ]
+    rows = {row[2]: row for row in generalization_table(jobs).rows}
+    assert set(rows) == {"sedan", "sedan_wet"}
+    assert rows["sedan"][:5] == ["edmd", "sedan", "sedan", "—", "2"]
+    assert rows["sedan"][5].startswith("1.5 ±") and rows["sedan_wet"][5].startswith("3.5 ±")
+    assert rows["sedan_wet"][-1].startswith("7 ±")  # lane change, mean of 6 and 8
