@@ -277,7 +277,7 @@ def plot_prediction(episode: Episode, predictions: Mapping[str, np.ndarray], pat
     for k, (name, pred) in enumerate(predictions.items()):
         for i in range(3):
             axes[i].plot(episode.time_s, pred[:, i], color=f"C{k}", lw=1.0, label=name)
-    axes[0].legend(loc="upper left", fontsize=8, ncol=len(predictions) + 1)
+    axes[0].legend(loc="upper left", fontsize=7, ncol=min(len(predictions) + 1, 4))
     axes[0].set_title(f"open-loop prediction, {episode.name} (axes clipped to 2x the data range)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -20,8 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from harness.report_figures import figures
-
 STATES = ("vx", "vy", "yaw_rate")
 
 
@@ -99,6 +97,14 @@ def _get(tree: Mapping[str, Any] | None, *keys: str) -> Any:
 
 
 _NAMED = {"learner", "plant", "controller", "seed"}
+# Overrides that change where or how a job runs, never its numbers: no row of their own.
+NEUTRAL = {
+    "recorder",
+    "data.root",
+    "data.workers",
+    "learner.training.progress",
+    "learner.training.num_threads",
+}
 
 
 def _variant(job: Job, common: Mapping[str, str]) -> str:
@@ -106,7 +112,7 @@ def _variant(job: Job, common: Mapping[str, str]) -> str:
     return ",".join(
         f"{k}={v}"
         for k, v in sorted(job.overrides.items())
-        if k not in _NAMED and common.get(k) != v
+        if k not in _NAMED and k not in NEUTRAL and not k.startswith("hydra") and common.get(k) != v
     )
 
 
@@ -350,6 +356,8 @@ def report(sweep_dir: Path) -> Path:
             writer = csv.writer(handle)
             writer.writerow(table.columns)
             writer.writerows(table.rows)
+    from harness.report_figures import figures  # it builds on this module's Job
+
     written = figures(finished, out)
     if written:
         sections += ["### Figures", ""]

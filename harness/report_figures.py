@@ -32,6 +32,7 @@ from harness.artifacts import load_arrays
 from harness.data.episode import Episode
 from harness.figures import save_figure
 from harness.prediction import plot_prediction
+from harness.report import NEUTRAL
 from harness.tracking import load_run, plot_tracking
 
 if TYPE_CHECKING:
@@ -66,8 +67,14 @@ def _groups(jobs: Iterable[Job]) -> dict[str, list[Job]]:
 
 
 def _describes_learner(key: str) -> bool:
-    """The learner, its settings and the seed are drawn within one figure, not across."""
-    return key in _ACROSS or key.startswith("learner.")
+    """The learner, its settings (or model file) and the seed are drawn within one figure, and
+    what never changes a number does not split figures."""
+    return (
+        key in _ACROSS
+        or key in NEUTRAL
+        or key.startswith(("learner.", "hydra"))
+        or key == "task.model_path"
+    )
 
 
 def _suffix(text: str) -> str:
