@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import logging
 import math
 import sys
 from collections import defaultdict
@@ -20,7 +21,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig
+
 STATES = ("vx", "vy", "yaw_rate")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -366,6 +371,17 @@ def report(sweep_dir: Path) -> Path:
     markdown = out / "report.md"
     markdown.write_text("\n".join(sections))
     return markdown
+
+
+class WriteReport(Callback):
+    """Every sweep ends with its report (``hydra.callbacks.report`` in ``conf/config.yaml``)."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        try:
+            log.info("sweep report: %s", report(sweep_dir))
+        except Exception as error:  # the jobs' results stand; the report can be rerun by hand
+            log.error("no report (%s); run: python -m harness.report %s", error, sweep_dir)
 
 
 def main(argv: list[str] | None = None) -> int:

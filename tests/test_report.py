@@ -40,6 +40,8 @@ def tiny_sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
     sweep_dir = tmp / "multirun"
     result = sweep(tmp, sweep_dir, "learner=edmd,elm_edmd", "seed=0,1")
     assert result.returncode == 0, result.stderr[-3000:]
+    # every sweep ends with its report (the WriteReport callback), before anyone asks for it
+    assert "elm_edmd" in (sweep_dir / "report" / "report.md").read_text()
     failing = sweep(tmp, sweep_dir / "bad", "learner=edmd", "learner.ridge=-1,0.0")
     assert failing.returncode == 0, failing.stderr[-3000:]  # one failed job ends no sweep
     return sweep_dir
