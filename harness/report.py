@@ -1,10 +1,12 @@
-"""``python -m harness.report SWEEP_DIR``: the paper's tables from a sweep's ``metrics.json`` files.
+"""``python -m harness.report SWEEP_DIR``: the paper's tables and figures from a sweep.
 
 Every job directory of a Hydra multirun (one with ``.hydra/overrides.yaml``) is read; its
-overrides name the row (learner, controller, plant, seed). Numbers are mean ± std over seeds.
-Writes ``report.md`` and one CSV per table into ``SWEEP_DIR/report/``; failed jobs (an
-``error.json``) and unfinished ones (no ``metrics.json``) are listed by name, never dropped
-silently.
+overrides name the row (learner, controller, plant, seed, and a ``variant`` for any other
+override that changes numbers). Numbers are mean ± std over the jobs that differ only by seed.
+Writes ``report.md``, one CSV per table and the figures (``harness/report_figures.py``) into
+``SWEEP_DIR/report/``; failed jobs (an ``error.json``) and unfinished ones (no
+``metrics.json``) are listed by name, never dropped silently. Every sweep runs it at its end
+(:class:`WriteReport`, a Hydra callback); rerun it by hand on a sweep still in progress.
 """
 
 from __future__ import annotations
