@@ -18,7 +18,7 @@ import logging
 import math
 import sys
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -114,16 +114,19 @@ NEUTRAL = {
 }
 
 
-def _variant(job: Job, common: Mapping[str, str]) -> str:
-    """The job's overrides that differ within the sweep, besides the named ones and the seed."""
+def variant(
+    job: Job, common: Mapping[str, str], named: Callable[[str], bool] = _NAMED.__contains__
+) -> str:
+    """The job's overrides that differ within the sweep, besides the ``named`` ones (which
+    name a row or a line of their own) and those that never change a number."""
     return ",".join(
         f"{k}={v}"
         for k, v in sorted(job.overrides.items())
-        if k not in _NAMED and k not in NEUTRAL and not k.startswith("hydra") and common.get(k) != v
+        if not named(k) and k not in NEUTRAL and not k.startswith("hydra") and common.get(k) != v
     )
 
 
-def _common(jobs: Iterable[Job]) -> dict[str, str]:
+def common_overrides(jobs: Iterable[Job]) -> dict[str, str]:
     jobs = list(jobs)
     if not jobs:
         return {}
@@ -136,10 +139,10 @@ def _common(jobs: Iterable[Job]) -> dict[str, str]:
 def _group(jobs: Iterable[Job], *keys: tuple[str, str]) -> dict[tuple[str, ...], list[Job]]:
     """Jobs that differ only by seed share a group (mean ± std); the last key is the variant."""
     jobs = list(jobs)
-    common = _common(jobs)
+    common = common_overrides(jobs)
     groups: dict[tuple[str, ...], list[Job]] = defaultdict(list)
     for job in jobs:
-        key = (*(job.choice(k, default) for k, default in keys), _variant(job, common))
+        key = (*(job.choice(k, default) for k, default in keys), variant(job, common))
         groups[key].append(job)
     return dict(sorted(groups.items()))
 
@@ -163,16 +166,17 @@ def prediction_table(jobs: list[Job], metric: str = "rmse") -> Table:
     return table
 
 
-def _tracking_runs(job: Job) -> Iterable[tuple[str, str, dict[str, Any]]]:
-    """(controller, reference, metrics) of every closed-loop run of a job; older jobs without
-    ``tracking.controllers`` give their one controller's runs."""
-    tracking = _get(job.metrics, "tracking") or {}
+def _tracking_runs(
+    tracking: Mapping[str, Any], controller: str
+) -> Iterable[tuple[str, str, dict[str, Any]]]:
+    """(controller, reference, metrics) of every closed-loop run of a ``tracking`` section,
+    first controller first; older sections without ``controllers`` are ``controller``'s."""
     by_controller = tracking.get("controllers")
     if not by_controller:
         references = tracking.get("references") or (
             {tracking.get("reference", "test_episode"): tracking} if "rmse" in tracking else {}
         )
-        by_controller = {job.choice("controller", "de_mpc"): references}
+        by_controller = {controller: references}
     for controller, runs in by_controller.items():
         for label, metrics in runs.items():
             if isinstance(metrics, Mapping) and "rmse" in metrics:
@@ -197,17 +201,20 @@ def tracking_table(jobs: list[Job]) -> Table:
             "solver failures",
         ],
     )
-    common = _common(jobs)
+    common = common_overrides(jobs)
     runs: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
     for job in jobs:
-        for controller, reference, metrics in _tracking_runs(job):
+        tracking = _get(job.metrics, "tracking") or {}
+        for controller, reference, metrics in _tracking_runs(
+            tracking, job.choice("controller", "de_mpc")
+        ):
             horizon = metrics.get("horizon") or {}
             key = (
                 job.choice("learner", "deep_edmd"),
                 controller,
                 f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
                 reference,
-                _variant(job, common) or "—",
+                variant(job, common) or "—",
             )
             runs[key].append(metrics)
     order = {"test_episode": 0}
@@ -274,10 +281,8 @@ def _mean_prediction(section: Mapping[str, Any], state: str) -> float | None:
 
 def _first_controller_run(section: Mapping[str, Any], reference: str) -> dict[str, Any] | None:
     """The first controller's run of ``reference`` (``test_episode`` matches its episode)."""
-    for label, metrics in (_get(section, "tracking", "references") or {}).items():
-        if label.split("/", 1)[0] == reference:
-            return metrics
-    return None
+    runs = _tracking_runs(section.get("tracking") or {}, "")
+    return next((metrics for _, name, metrics in runs if name == reference), None)
 
 
 def generalization_table(jobs: list[Job]) -> Table:

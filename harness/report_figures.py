@@ -32,7 +32,7 @@ from harness.artifacts import load_arrays
 from harness.data.episode import Episode
 from harness.figures import save_figure
 from harness.prediction import plot_prediction
-from harness.report import NEUTRAL
+from harness.report import common_overrides, variant
 from harness.tracking import load_run, plot_tracking
 
 if TYPE_CHECKING:
@@ -51,30 +51,19 @@ def _seed(job: Job) -> int:
 
 
 def _groups(jobs: Iterable[Job]) -> dict[str, list[Job]]:
-    """Jobs by what they share besides learner and seed; the key is a filename suffix."""
+    """Jobs by what they share besides learner and seed; the key is a filename suffix naming
+    what differs within the sweep (empty when nothing does)."""
+    jobs = list(jobs)
+    common = common_overrides(jobs)
     groups: dict[str, list[Job]] = defaultdict(list)
     for job in jobs:
-        rest = sorted((k, v) for k, v in job.overrides.items() if not _describes_learner(k))
-        groups[",".join(f"{k}={v}" for k, v in rest)].append(job)
-    # Overrides every group shares (e.g. experiment=paper) do not name the figure.
-    keys = list(groups)
-    if len(keys) == 1:
-        return {"": groups[keys[0]]}
-    shared = set.intersection(*(set(k.split(",")) for k in keys))
-    return {
-        _suffix(",".join(p for p in k.split(",") if p not in shared)): v for k, v in groups.items()
-    }
+        groups[_suffix(variant(job, common, named=_describes_learner))].append(job)
+    return dict(groups)
 
 
 def _describes_learner(key: str) -> bool:
-    """The learner, its settings (or model file) and the seed are drawn within one figure, and
-    what never changes a number does not split figures."""
-    return (
-        key in _ACROSS
-        or key in NEUTRAL
-        or key.startswith(("learner.", "hydra"))
-        or key == "task.model_path"
-    )
+    """The learner, its settings (or model file) and the seed are drawn within one figure."""
+    return key in _ACROSS or key.startswith("learner.") or key == "task.model_path"
 
 
 def _suffix(text: str) -> str:
