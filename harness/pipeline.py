@@ -181,16 +181,16 @@ class Pipeline:
             return None
         if not isinstance(learner, KoopmanLearner):
             return {"skipped": f"{self.learner_name} is not a lifted-linear model"}
+        targets = {
+            name: (f"test_episode/{episode.name}", references.from_episode(episode))
+            if name == "test_episode"
+            else (name, references.double_lane_change(self.lane_change_speed, dt=plant.dt))
+            for name in self.references
+        }
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
             runs: dict[str, Any] = {}
-            for name in self.references:
-                if name == "test_episode":
-                    label = f"test_episode/{episode.name}"
-                    reference = references.from_episode(episode)
-                else:
-                    label = name
-                    reference = references.double_lane_change(self.lane_change_speed, dt=plant.dt)
+            for name, (label, reference) in targets.items():
                 controller = make_controller(learner)
                 stem = f"tracking_{controller_name}_{name}"
                 metrics, _ = track(
