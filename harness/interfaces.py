@@ -1,0 +1,99 @@
+"""The three contracts of the harness, written down once: a plant, a lifted model, a controller.
+
+Everything that steps a car (data collection, characterization, closed-loop tracking) is typed
+against :class:`Plant`; every MPC reads a learner through :class:`LiftedModel`; every rollout
+drives a :class:`Controller`, whose ``act`` returns the input *and* a :class:`StepInfo`, so no
+caller ever probes a controller for attributes.
+
+States and inputs are the paper's, in the harness's units:
+
+- x = (vx, vy, yaw_rate) in m/s, m/s, rad/s (the centre of gravity in the yaw frame);
+- u = (steer_wheel_deg, pedal): steering-wheel angle in degrees; pedal >= 0 is throttle in
+  [0, 0.2], pedal < 0 is brake master-cylinder pressure in -MPa.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import numpy as np
+
+if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import nothing heavy
+    from harness.data.episode import MinMaxNormalizer
+
+STATE_NAMES: tuple[str, ...] = ("vx", "vy", "yaw_rate")
+INPUT_NAMES: tuple[str, ...] = ("steer_wheel_deg", "pedal")
+
+
+@runtime_checkable
+class Plant(Protocol):
+    """A car that steps at ``dt`` under u and reports x (mujoco_playground's ``reset``/``step``)."""
+
+    dt: float
+
+    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray:
+        """Start at rest (the paper's x0 = 0), or rolling straight at ``speed_mps``; return x."""
+        ...
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        """Hold u for one control period; return the new x."""
+        ...
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(X, Y, yaw) in the world frame (m, m, rad): where the car is, for display and paths."""
+        ...
+
+    @property
+    def fingerprint(self) -> dict[str, Any]:
+        """Everything that determines the plant's behaviour (JSON-able): what a dataset keys on."""
+        ...
+
+
+@runtime_checkable
+class LiftedModel(Protocol):
+    """A fitted Koopman model: z⁺ = A_ z + B_ v, x_norm = C_ z, z = lift(x) (paper eqs. 9-12).
+
+    v = normalizer_.inputs(u) and x = normalizer_.states_inverse(C_ z): the model lives in the
+    min-max normalized units of the data it was fitted on.
+    """
+
+    A_: np.ndarray  # (N, N)
+    B_: np.ndarray  # (N, m)
+    C_: np.ndarray  # (n, N)
+    normalizer_: MinMaxNormalizer
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """z = lift(x) for physical states x (..., n) -> (..., N)."""
+        ...
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """What a controller did in one ``act``, beside the input it returns.
+
+    ``predicted_states`` (Np, n): the physical states its model predicts over the horizon under
+    the plan (Np = 0 for a controller without a model); ``planned_inputs`` (Nc, m): the plan
+    itself in physical units; ``solve_path``: which solver answered (DE-MPC: unconstrained,
+    active_set, piqp, failed); ``fallback``: the solve failed and a previous plan's move was
+    applied instead.
+    """
+
+    predicted_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    planned_inputs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    solve_path: str = "n/a"
+    fallback: bool = False
+
+
+@runtime_checkable
+class Controller(Protocol):
+    """A feedback law on the plant: ``reset(reference)`` before a run, then ``act`` every step."""
+
+    def reset(self, reference: np.ndarray) -> None:
+        """Start a run tracking ``reference``: (T, n) physical states at the control period."""
+        ...
+
+    def act(self, x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
+        """The input u for measured state x at time t (s), and what the controller did."""
+        ...
