@@ -20,9 +20,7 @@ from harness.interfaces import Controller, LiftedModel
 class ControllerFactory(Protocol):
     """Checked settings that build a controller on a fitted model (``instantiate(cfg)``)."""
 
-    def __call__(
-        self, model: LiftedModel, control_period_s: float | None = None
-    ) -> Controller: ...
+    def __call__(self, model: LiftedModel, control_period_s: float | None = None) -> Controller: ...
 
 
 def check_controller_config(node: DictConfig) -> ControllerFactory:

@@ -280,7 +280,7 @@ def _check_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """The contract, checked once: shapes agree and lift returns the lifted dimension."""
     if not isinstance(model, LiftedModel):
         raise ValueError(
-            "model lacks A_, B_, C_, normalizer_ or lift: is it fitted, and a lifted-linear learner?"
+            "model lacks A_, B_, C_, normalizer_ or lift: is it fitted and lifted-linear?"
         )
     A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))  # noqa: N806
     size = A.shape[0] if A.ndim == 2 else -1
