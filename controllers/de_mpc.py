@@ -182,33 +182,35 @@ class DEMPC:
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
             self._plan_step = 1
-            v, dv = self._plan[0], solution.dv
+            plan, dv = self._plan, solution.dv
         else:
-            v, dv = self._fallback(v_prev)
+            plan, dv = self._fallback(v_prev)
             log.warning(
                 "DE-MPC solve failed at t = %.2f s (%s); applying the previous plan's next move",
                 t,
                 solution.status,
             )
-        u = np.clip(self.normalizer.inputs_inverse(v), self.u_min, self.u_max)
-        self._v_prev = v
+        self._v_prev = plan[0]
+        # The whole plan converts at the cost of its first move (elementwise, same bits).
+        planned_inputs = self.normalizer.inputs_inverse(plan)
+        u = np.clip(planned_inputs[0], self.u_min, self.u_max)
         info = StepInfo(
             predicted_states=self.normalizer.states_inverse(self.qp.predict(z, v_prev, dv)),
-            planned_inputs=self.normalizer.inputs_inverse(v_prev + np.cumsum(dv, axis=0)),
+            planned_inputs=planned_inputs,
             solve_path=solution.path,
             fallback=not solution.ok,
         )
         return u, info
 
     def _fallback(self, v_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(v, increments): the previous plan's next move (held at its end) and the rest of
-        that plan as increments from v_prev; the last input and no move if there is no plan."""
+        """(plan, increments): the rest of the previous plan, held at its end, as the new plan
+        (its first row is the move applied); the last input held if there is no plan."""
         if self._plan is None:
-            return v_prev, np.zeros((self.Nc, INPUTS))
+            return np.repeat(v_prev[None], self.Nc, axis=0), np.zeros((self.Nc, INPUTS))
         rest = self._plan[min(self._plan_step, self.Nc - 1) :]
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
-        return rest[0], np.diff(np.vstack([v_prev, rest]), axis=0)
+        return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
 
 
 def _check_types(config: DEMPCConfig) -> None:

@@ -35,11 +35,11 @@ class LiftedLinearModel:
     B_: np.ndarray
     normalizer_: MinMaxNormalizer
     features: Callable[[np.ndarray], np.ndarray] = field(default=polynomial_features)
+    C_: np.ndarray = field(init=False)  # the state is the lift's first three coordinates
 
-    @property
-    def C_(self) -> np.ndarray:  # noqa: N802
+    def __post_init__(self) -> None:
         size = self.A_.shape[0]
-        return np.hstack([np.eye(3), np.zeros((3, size - 3))])
+        self.C_ = np.hstack([np.eye(3), np.zeros((3, size - 3))])
 
     def lift(self, x: np.ndarray) -> np.ndarray:
         x_norm = self.normalizer_.states(x)
