@@ -73,7 +73,7 @@ class Pipeline:
         for name, make in (extra_controllers or {}).items():
             if not callable(make):
                 raise ValueError(
-                    f"task.extra_controllers.{name} must be a controller config (_partial_: true)"
+                    f"task.extra_controllers.{name} must be a controller config (conf/controller/)"
                 )
             self.controllers[name] = make
         self.other_plants = dict(other_plants or {})
@@ -191,7 +191,7 @@ class Pipeline:
         for controller_name, make_controller in self.controllers.items():
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
-                controller = make_controller(learner)
+                controller = make_controller(learner, plant.dt)
                 stem = f"tracking_{controller_name}_{name}"
                 metrics, _ = track(
                     plant,
@@ -202,7 +202,6 @@ class Pipeline:
                     figure_path=output_dir / f"{stem}.png",
                     arrays_path=output_dir / f"{stem}.npz",
                 )
-                metrics["horizon"] = {"Np": controller.Np, "Nc": controller.Nc}
                 runs[label] = metrics
                 log.info(
                     "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
