@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.characterize import Characterize
+from harness.tasks.characterize import Characterize
 from harness.plant import Sedan
 from harness.recorder import Recorder
 
