@@ -41,4 +41,3 @@ def prepare(
         "normalizer": dataset.normalizer.to_dict(),
     }
     return dataset, metrics
-
