@@ -6,7 +6,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from harness.config import as_object
 from harness.data import coverage
+from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, collect_counted, load
 from harness.plant import Sedan
 from harness.recorder import Recorder
@@ -16,7 +18,7 @@ def prepare(
     plant: Sedan, data: DataConfig, recorder: Recorder, output_dir: Path
 ) -> tuple[Dataset, dict]:
     """Collect or reuse; write the coverage figure; record every episode; return the summary."""
-    directory, collected = collect_counted(plant.params, data)
+    directory, collected = collect_counted(plant, data, DriverKnowledge.of(plant.params))
     dataset = load(directory)
     splits = {"train": dataset.train, "validation": dataset.validation, "test": dataset.test}
     coverage.plot(splits, plant.params.tire.road_friction, output_dir / "data_coverage.png")
@@ -48,7 +50,7 @@ class Collect:
     """The data stage alone: ``python -m harness task=collect data=paper``."""
 
     def __init__(self, data: Mapping[str, Any]) -> None:
-        self.data = DataConfig.from_config(data)
+        self.data = as_object(data, DataConfig)
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         _, metrics = prepare(plant, self.data, recorder, output_dir)
