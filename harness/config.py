@@ -43,21 +43,35 @@ def register_configs() -> None:
 
 def validate(cfg: DictConfig) -> None:
     """Build the dataclass of every structured node of ``cfg`` (Hydra's own node aside), so
-    every range check runs now; the first failure raises its one-line ``ValueError``."""
-    _validate_children(cfg, skip=("hydra",))
+    every range check runs now; the first failure raises its one-line ``ValueError``.
+
+    Keys added with ``+key=value`` bypass the schema at composition (Hydra opens the node for
+    them) and ``OmegaConf.to_object`` would drop them silently: they are refused here.
+    """
+    _validate(cfg, path="", in_schema=False)
 
 
-def _validate_children(node: DictConfig | ListConfig, skip: tuple[str, ...] = ()) -> None:
+def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None:
+    schema = OmegaConf.get_type(node) if isinstance(node, DictConfig) else None
+    structured = dataclasses.is_dataclass(schema)
+    known = [f.name for f in dataclasses.fields(schema)] if structured else []  # type: ignore[arg-type]
     keys: list[Any] = list(node.keys()) if isinstance(node, DictConfig) else list(range(len(node)))
     for key in keys:
+        full_key = f"{path}.{key}" if path else str(key)
+        if structured and key not in known:
+            raise ValueError(f"unknown key {full_key}; known keys: {', '.join(known)}")
         # Interpolations point at nodes checked where they live (``task.data: ${data}``).
-        if key in skip or OmegaConf.is_interpolation(node, key) or OmegaConf.is_missing(node, key):
+        if (
+            full_key == "hydra"
+            or OmegaConf.is_interpolation(node, key)
+            or OmegaConf.is_missing(node, key)
+        ):
             continue
         child = node[key]
-        if isinstance(child, DictConfig) and dataclasses.is_dataclass(OmegaConf.get_type(child)):
-            OmegaConf.to_object(child)
-        elif isinstance(child, (DictConfig, ListConfig)):
-            _validate_children(child)
+        if isinstance(child, (DictConfig, ListConfig)):
+            _validate(child, full_key, in_schema or structured)
+    if structured and not in_schema:
+        OmegaConf.to_object(node)  # runs every __post_init__ of the block, innermost first
 
 
 def as_object(node: Any, schema: type[T]) -> T:

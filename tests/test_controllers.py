@@ -20,6 +20,7 @@ from controllers.lifted_linear import (
 )
 from controllers.lifted_linear import toy_linear_model as linear_model
 from harness.data import Episode
+from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
 from harness.paths import CONF_DIR
 from harness.plant import Sedan
@@ -257,7 +258,7 @@ def quick_model_and_episode() -> tuple[LiftedLinearModel, Episode]:
     plant = Sedan()
     episodes = []
     for index in range(4):
-        drive = drive_episode(plant.params, data, index, 1500)
+        drive = drive_episode(plant, data, DriverKnowledge.of(plant.params), index, 1500)
         episodes.append(
             Episode(f"e{index}", drive["time_s"], drive["states"], drive["inputs"], drive["poses"])
         )
