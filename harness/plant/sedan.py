@@ -162,7 +162,7 @@ class Sedan:
         return {
             "plant": type(self).__name__,
             "params": dataclasses.asdict(self.params),
-            "sources": _source_digests(),
+            "sources": dict(_source_digests()),
             "mujoco": mujoco.__version__,
         }
 
