@@ -8,20 +8,17 @@ run leaves either the old file or the new one.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from harness.files import write_atomic
+
 
 def save_arrays(path: Path, **arrays: np.ndarray) -> Path:
     """``np.savez_compressed`` through a temporary file in the same directory."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
-    os.replace(tmp, path)
-    return path
+    contents = {k: np.asarray(v) for k, v in arrays.items()}
+    return write_atomic(path, lambda handle: np.savez_compressed(handle, **contents))
 
 
 def load_arrays(path: Path) -> dict[str, np.ndarray]:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from harness.artifacts import save_arrays
 from harness.data.episode import Episode
@@ -245,13 +246,9 @@ def _finite(x: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(x), x, np.nan)
 
 
-def _figure(episode: Episode):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
+def _figure(episode: Episode) -> tuple[Figure, np.ndarray]:
+    fig = Figure(figsize=(9, 9))
+    axes = fig.subplots(4, 1, sharex=True)
     t = episode.time_s
     for ax, i in zip(axes[:3], range(3), strict=True):
         ax.plot(t, episode.states[:, i], "k-", lw=1.6, label="measured")
@@ -268,12 +265,12 @@ def _figure(episode: Episode):
     ax_p.set_ylabel("pedal [throttle / -MPa]", color="C8")
     ax_u.set_xlabel("time [s]")
     ax_u.grid(True, alpha=0.3)
-    return fig, axes, plt
+    return fig, axes
 
 
 def plot_prediction(episode: Episode, predictions: Mapping[str, np.ndarray], path: Path) -> Path:
     """Three state panels (measured and every learner's open-loop prediction) and the inputs."""
-    fig, axes, _ = _figure(episode)
+    fig, axes = _figure(episode)
     for k, (name, pred) in enumerate(predictions.items()):
         for i in range(3):
             axes[i].plot(episode.time_s, pred[:, i], color=f"C{k}", lw=1.0, label=name)
@@ -290,7 +287,7 @@ def plot_robustness(
     path: Path,
 ) -> Path:
     """Mean of the repeated predictions per learner with their 5-95 % band shaded."""
-    fig, axes, _ = _figure(episode)
+    fig, axes = _figure(episode)
     for k, (name, (mean, low, high)) in enumerate(bands.items()):
         for i in range(3):
             axes[i].plot(episode.time_s, mean[:, i], color=f"C{k}", lw=1.0, label=f"{name} mean")

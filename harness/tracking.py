@@ -31,11 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from harness.artifacts import load_arrays, save_arrays
 from harness.figures import save_figure
@@ -181,7 +178,8 @@ _UNITS = {"vx": "m/s", "vy": "m/s", "yaw_rate": "rad/s", "steer_wheel_deg": "deg
 
 def plot_tracking(runs: Mapping[str, TrackingTrajectory], path: Path) -> None:
     """The paper's tracking figure: reference vs actual for vx, vy, r; then the inputs."""
-    fig, axes = plt.subplots(5, 1, figsize=(8, 11), sharex=True)
+    fig = Figure(figsize=(8, 11))
+    axes = fig.subplots(5, 1, sharex=True)
     first = next(iter(runs.values()))
     for i, state in enumerate(STATE_NAMES):
         axes[i].plot(first.time_s, first.reference[:, i], "k--", lw=1.2, label="reference")

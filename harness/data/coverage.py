@@ -5,11 +5,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from harness.data.episode import Episode, pedal_scale
 from harness.figures import save_figure
@@ -56,7 +53,7 @@ def plot(splits: dict[str, Sequence[Episode]], road_friction: float, path: Path)
     states = np.concatenate([e.states for e in episodes])
     inputs = np.concatenate([e.inputs for e in episodes])
     a_y = np.concatenate([lateral_accel(e) for e in episodes])
-    fig = plt.figure(figsize=(16, 9))
+    fig = Figure(figsize=(16, 9))
     grid = fig.add_gridspec(2, 4)
 
     ax = fig.add_subplot(grid[:, :2])

@@ -27,7 +27,6 @@ import fcntl
 import hashlib
 import json
 import math
-import os
 import platform
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
@@ -43,6 +42,7 @@ from tqdm import tqdm
 
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
 from harness.data.episode import Episode, MinMaxNormalizer
+from harness.files import write_atomic, write_text_atomic
 from harness.interfaces import Plant
 from harness.plant.native import cache_dir
 
@@ -164,16 +164,8 @@ def dataset_root(data: DataConfig) -> Path:
     return Path(data.root).expanduser() if data.root else cache_dir() / "datasets"
 
 
-def _write_atomic(path: Path, write) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    write(tmp)
-    os.replace(tmp, path)
-
-
 def _write_manifest(path: Path, manifest: dict[str, Any]) -> None:
-    _write_atomic(
-        path / "manifest.json", lambda tmp: tmp.write_text(json.dumps(manifest, indent=1))
-    )
+    write_text_atomic(path / "manifest.json", json.dumps(manifest, indent=1))
 
 
 @contextmanager
@@ -241,11 +233,7 @@ def _collect_one(
     path = Path(directory) / f"episode_{index:04d}.npz"
     arrays = {k: v for k, v in episode.items() if k != "spun"}
 
-    def write(tmp: Path) -> None:
-        with tmp.open("wb") as handle:
-            np.savez(handle, **arrays)
-
-    _write_atomic(path, write)
+    write_atomic(path, lambda handle: np.savez(handle, **arrays))
     return index, _sha256(path), len(episode["time_s"]), bool(episode["spun"])
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import logging
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from harness.files import write_text_atomic
 from harness.report.figures import figures
 from harness.report.jobs import HYDRA_FILE, Run, read_runs
 from harness.report.tables import Table, tables
@@ -49,17 +51,18 @@ def report(sweep_dir: Path) -> Path:
         if not table.rows:
             continue
         sections.append(table.markdown())
-        with (out / f"{name}.csv").open("w", newline="") as handle:
-            writer = csv.writer(handle)
-            writer.writerow(table.columns)
-            writer.writerows(table.rows)
+        rows = io.StringIO(newline="")
+        writer = csv.writer(rows)
+        writer.writerow(table.columns)
+        writer.writerows(table.rows)
+        write_text_atomic(out / f"{name}.csv", rows.getvalue())
     written = figures(finished, out)
     if written:
         sections += ["### Figures", ""]
         sections += [f"![{p.stem}]({p.relative_to(out).as_posix()})" for p in written]
         sections.append("")
     markdown = out / "report.md"
-    markdown.write_text("\n".join(sections))
+    write_text_atomic(markdown, "\n".join(sections))
     return markdown
 
 

@@ -22,10 +22,7 @@ from collections import defaultdict
 from collections.abc import Iterable
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
+from matplotlib.figure import Figure
 
 from harness.artifacts import load_arrays
 from harness.data.episode import Episode
@@ -133,9 +130,8 @@ def loss_figure(jobs: list[Run], out: Path) -> Path | None:
             histories[label].append((job.seed, history))
     if not histories:
         return None
-    fig, axes = plt.subplots(
-        len(histories), 1, figsize=(8, 2.6 * len(histories)), squeeze=False, sharex=True
-    )
+    fig = Figure(figsize=(8, 2.6 * len(histories)))
+    axes = fig.subplots(len(histories), 1, squeeze=False, sharex=True)
     for ax, (label, runs) in zip(axes[:, 0], sorted(histories.items()), strict=True):
         for k, (seed, history) in enumerate(runs):
             steps = history["step"]

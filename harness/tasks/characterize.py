@@ -22,11 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from harness.figures import save_figure
 from harness.plant import Sedan
@@ -260,7 +257,8 @@ def _wheelbase(plant: Sedan) -> float:
 
 def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -> None:
     """One page, six panels: the evidence behind each characterization number."""
-    fig, axes = plt.subplots(2, 3, figsize=(15, 8.5))
+    fig = Figure(figsize=(15, 8.5))
+    axes = fig.subplots(2, 3)
     name = plant.params.name
 
     ramp = runs["steady_state_circle"]
