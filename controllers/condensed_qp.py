@@ -75,14 +75,14 @@ class CondensedQP:
 
     def __init__(
         self,
-        A: np.ndarray,  # noqa: N803
-        B: np.ndarray,  # noqa: N803
-        C: np.ndarray,  # noqa: N803
+        A: np.ndarray,
+        B: np.ndarray,
+        C: np.ndarray,
         *,
-        Np: int,  # noqa: N803
-        Nc: int,  # noqa: N803
-        Q: np.ndarray,  # noqa: N803
-        R: np.ndarray,  # noqa: N803
+        Np: int,
+        Nc: int,
+        Q: np.ndarray,
+        R: np.ndarray,
         rho: float,
         v_min: np.ndarray,
         v_max: np.ndarray,
@@ -106,9 +106,9 @@ class CondensedQP:
 
     # ---- built once per model -------------------------------------------------------------
 
-    def _build_prediction(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> None:  # noqa: N803
+    def _build_prediction(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> None:
         """Φz, Φv, Θ of eq. (18) from the step responses S_l = Σ_{q<l} A^q B."""
-        n, m, N, Np, Nc = self.n, self.m, self.N, self.Np, self.Nc  # noqa: N806
+        n, m, N, Np, Nc = self.n, self.m, self.N, self.Np, self.Nc
         power = np.eye(N)
         step = np.zeros((N, m))
         phi_z, step_out = [], [np.zeros((n, m))]  # C S_0 = 0
@@ -125,8 +125,8 @@ class CondensedQP:
                 theta[i - 1, :, j, :] = step_out[i - j]
         self.theta = theta.reshape(n * Np, m * Nc)
 
-    def _build_cost(self, Q: np.ndarray, R: np.ndarray) -> None:  # noqa: N803
-        n, Np, Nc, M = self.n, self.Np, self.Nc, self.m * self.Nc  # noqa: N806
+    def _build_cost(self, Q: np.ndarray, R: np.ndarray) -> None:
+        n, Np, Nc, M = self.n, self.Np, self.Nc, self.m * self.Nc
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
         q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, n, M)).reshape(n * Np, M)
         self._theta_q = np.ascontiguousarray(q_theta.T)  # ΘᵀQ, (M, n Np)
@@ -141,10 +141,10 @@ class CondensedQP:
 
     def _build_constraints(self) -> None:
         """Rows G x <= b (b moves with v_{t-1}), the dual operator K = G P⁻¹ Gᵀ and P⁻¹Gᵀ."""
-        m, Nc, M = self.m, self.Nc, self.m * self.Nc  # noqa: N806
+        m, Nc, M = self.m, self.Nc, self.m * self.Nc
         inv_rate = np.tile(1.0 / self.dv_max, Nc)
         cumulative = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(m))
-        G = np.zeros((4 * M + 1, M + 1))  # noqa: N806
+        G = np.zeros((4 * M + 1, M + 1))
         G[:M, :M], G[:M, M] = np.diag(inv_rate), -1.0
         G[M : 2 * M, :M], G[M : 2 * M, M] = -np.diag(inv_rate), -1.0
         G[2 * M : 3 * M, :M] = cumulative
@@ -162,9 +162,9 @@ class CondensedQP:
 
     def _build_piqp(self, max_iter: int) -> None:
         """The same QP in x_V = [V; ε] with ΔV = D V - E v_{t-1}: V bounds become box bounds."""
-        m, Nc, M = self.m, self.Nc, self.m * self.Nc  # noqa: N806
+        m, Nc, M = self.m, self.Nc, self.m * self.Nc
         difference = np.eye(M) - np.eye(M, k=-m)
-        T = np.zeros((M + 1, M + 1))  # noqa: N806
+        T = np.zeros((M + 1, M + 1))
         T[:M, :M], T[M, M] = difference, 1.0
         self._T = T
         self._P_V = np.asfortranarray(T.T @ self.P @ T)
@@ -200,7 +200,7 @@ class CondensedQP:
 
     def residual(self, x: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
         """G x - b: positive entries are violated rows."""
-        M = self._M  # noqa: N806
+        M = self._M
         dv, eps = x[:M], x[M]
         scaled = dv * self._inv_rate
         v = (dv.reshape(self.Nc, self.m).cumsum(axis=0) + v_prev).ravel()
@@ -233,7 +233,7 @@ class CondensedQP:
         return solution
 
     def _solution(self, x: np.ndarray, path: str, iterations: int, status: str) -> QPSolution:
-        M = self.m * self.Nc  # noqa: N806
+        M = self.m * self.Nc
         return QPSolution(x[:M].reshape(self.Nc, self.m), float(x[M]), path, iterations, status)
 
     def _hot_active_set(
@@ -317,7 +317,7 @@ class CondensedQP:
 
     def solve_piqp(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
         """PIQP alone (dense), in absolute inputs: the reference path and the last resort."""
-        M = self.m * self.Nc  # noqa: N806
+        M = self.m * self.Nc
         e = self.phi_z @ z + self.phi_v @ v_prev - y_ref
         c = np.zeros(M + 1)
         c[:M] = 2 * self._theta_q @ e
@@ -370,9 +370,9 @@ class CondensedQP:
 
 
 def _check_piqp_shapes(
-    P: np.ndarray,  # noqa: N803
+    P: np.ndarray,
     c: np.ndarray,
-    G: np.ndarray,  # noqa: N803
+    G: np.ndarray,
     h_l: np.ndarray,
     h_u: np.ndarray,
     x_l: np.ndarray,

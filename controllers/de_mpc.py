@@ -110,8 +110,8 @@ class DEMPC:
         self.config = config
         self.model = model
         self.Np, self.Nc, self.dt = int(config.Np), int(config.Nc), float(config.dt)
-        Q, R = config.weights()  # noqa: N806
-        A, B, C = _check_model(model)  # noqa: N806
+        Q, R = config.weights()
+        A, B, C = _check_model(model)
         self.normalizer: MinMaxNormalizer = model.normalizer_
         to_v = self.normalizer.inputs
         self.u_min = np.array([config.steer_wheel_min_deg, config.pedal_min])
@@ -225,7 +225,7 @@ def _check_types(config: DEMPCConfig) -> None:
             raise ValueError(f"controller.{spec.name} must be a number (got {value!r})")
 
 
-def _check_horizons(Np: float, Nc: float) -> None:  # noqa: N803
+def _check_horizons(Np: float, Nc: float) -> None:
     for key, value in (("Np", Np), ("Nc", Nc)):
         if not float(value).is_integer() or value < 1:
             raise ValueError(f"controller.{key} must be a positive integer (got {value})")
@@ -284,7 +284,7 @@ def _check_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray
         raise ValueError(
             "model lacks A_, B_, C_, normalizer_ or lift: is it fitted and lifted-linear?"
         )
-    A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))  # noqa: N806
+    A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))
     size = A.shape[0] if A.ndim == 2 else -1
     for name, array, shape in (
         ("A_", A, (size, size)),

@@ -35,9 +35,9 @@ def toy_linear_model() -> LiftedLinearModel:
     a = np.array([[0.995, 0.0, 0.0], [0.0, 0.90, 0.04], [0.0, 0.03, 0.93]])
     b = np.array([[0.0, 0.004], [0.02, 0.0], [0.03, 0.0]])
     x_rest, v_rest = np.full(3, 0.5), np.full(2, 0.5)
-    A = np.eye(4)  # noqa: N806
+    A = np.eye(4)
     A[:3, :3], A[:3, 3] = a, x_rest - a @ x_rest - b @ v_rest
-    B = np.vstack([b, np.zeros((1, 2))])  # noqa: N806
+    B = np.vstack([b, np.zeros((1, 2))])
     return LiftedLinearModel(A, B, normalizer, constant_feature)
 
 
