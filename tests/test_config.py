@@ -7,19 +7,29 @@ ranges by the dataclasses' ``__post_init__``, all at once by ``validate`` before
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib
 
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from controllers import DEMPCConfig
 from harness.config import validate
 from harness.data.store import DataConfig
+from harness.interfaces import Plant
 from harness.paths import CONF_DIR
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
+from harness.references import Reference
+from harness.tasks.characterize import Characterize
+from harness.tasks.collect import Collect
+from harness.tasks.pipeline import Pipeline
+from learners import Learner
 
 SCHEMAS = {"plant": SedanParams, "data": DataConfig}
 CONFIGS = [
@@ -167,3 +177,74 @@ def test_experiment_generalization_evaluates_on_the_wet_and_loaded_plants() -> N
     assert others.sedan_wet.tire.road_friction == 0.5
     assert others.sedan_loaded.chassis.payload_kg == 300.0
     assert cfg.plant.name == "sedan"
+
+
+def _every_config_file() -> list[tuple[str, str]]:
+    """(group, option) for every YAML under conf/ except config.yaml itself."""
+    return sorted(
+        (path.parent.relative_to(CONF_DIR).as_posix(), path.stem)
+        for path in CONF_DIR.rglob("*.yaml")
+        if path.parent != CONF_DIR
+    )
+
+
+ALL_CONFIGS = _every_config_file()
+
+
+def test_the_config_list_covers_every_group() -> None:
+    groups = {group for group, _ in ALL_CONFIGS}
+    assert groups >= {
+        "plant",
+        "data",
+        "learner",
+        "controller",
+        "task",
+        "recorder",
+        "reference",
+        "experiment",
+        "hydra/launcher",
+    }
+
+
+# What each group's option builds: the contracts of harness/interfaces.py where there is one.
+BUILDS: dict[str, type | tuple[type, ...]] = {
+    "plant": Plant,
+    "data": DataConfig,
+    "learner": Learner,
+    "controller": DEMPCConfig,
+    "task": (Pipeline, Characterize, Collect),
+    "experiment": Pipeline,
+    "recorder": functools.partial,
+    "reference": Reference,
+}
+
+
+def _compose_as_the_app(*overrides: str):
+    """Compose as ``python -m harness`` does, with ``${hydra:...}`` resolvable."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=list(overrides), return_hydra_config=True)
+    HydraConfig.instance().set_config(cfg)
+    return cfg
+
+
+@pytest.mark.parametrize(("group", "name"), ALL_CONFIGS, ids=[f"{g}/{n}" for g, n in ALL_CONFIGS])
+def test_every_config_file_composes_validates_and_builds(group: str, name: str) -> None:
+    """Each option, chosen on top of the defaults, composes, passes every check and builds."""
+    if group == "hydra/launcher":
+        if name.startswith("ray"):  # the Ray launcher is an optional extra (make test-ray)
+            pytest.importorskip("hydra_plugins.hydra_ray_launcher")
+        cfg = _compose_as_the_app(f"hydra/launcher={name}")
+        module, _, cls = cfg.hydra.launcher._target_.rpartition(".")
+        assert isinstance(getattr(importlib.import_module(module), cls), type)
+        return
+    if group == "reference":  # a reference is built where a task lists it
+        cfg = _compose_as_the_app(f"+reference@task.references.probe={name}")
+        node = cfg.task.references.probe
+    else:
+        cfg = _compose_as_the_app(f"{group}={name}")
+        node = cfg.task if group == "experiment" else cfg[group]
+    validate(cfg)
+    built = OmegaConf.to_object(node) if group == "data" else instantiate(node)
+    assert isinstance(built, BUILDS[group]), f"{group}={name} built a {type(built).__name__}"
+    if group == "plant":
+        assert built.reset(seed=0).shape == (3,)
