@@ -4,8 +4,14 @@ Each test is one closed-loop rollout with a simple test driver; every rollout is
 Metrics (SI unless the key says otherwise) go under ``characterize`` in ``metrics.json``:
 
 - ``understeer_gradient_deg_per_g``: ISO 4138 constant-speed method, slow steering ramp;
-  K = d(delta)/d(a_y) - L / v^2 on the linear range (a_y in [0.5, 4] m/s^2), road-wheel angle
+  K = d(delta)/d(a_y) - L / v^2 on the linear range (a_y in [0.5, 4] m/s^2) of the rising
+  branch (before a_y first reaches the top of that range), road-wheel angle
   delta = steering-wheel angle / ratio.
+- ``understeer_gradient_steady_state_deg_per_g``: the same K by ISO 4138's steady-state
+  method: several steering-wheel angles, each held at constant speed until steady, one point
+  (a_y, delta - L r / v) per angle, fitted on the same range; ``steady_state`` holds every point
+  and, per speed, K and the yaw-rate gain relative to kinematic (r / (v delta / L)) at the
+  smallest angle. The two methods agree within a few per cent (a test holds them to 10 %).
 - ``max_lateral_accel_mps2``: peak of a_y (0.5 s moving average) on that ramp.
 - ``yaw_rate_rise_time_s`` / ``yaw_rate_overshoot``: ISO 7401 step steer at 80 km/h sized for
   4 m/s^2; rise time is ISO's response time, from 50 % steering input to 90 % of the steady yaw
@@ -21,6 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -35,10 +42,23 @@ KPH_100 = 100 / 3.6
 
 
 def moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving average; near the ends it averages the samples that exist (no zero
+    padding, which once pulled a spinning car's last samples into the linear range)."""
     if window <= 1:
         return values
-    kernel = np.ones(window) / window
-    return np.convolve(values, kernel, mode="same")
+    kernel = np.ones(window)
+    total = np.convolve(values, kernel, mode="same")
+    count = np.convolve(np.ones_like(values), kernel, mode="same")
+    return total / count
+
+
+def understeer_gradient(lateral: np.ndarray, excess: np.ndarray, upper: float) -> float:
+    """K (rad per m/s^2) = slope of delta - L r / v against a_y on the linear range (0.5, upper);
+    NaN with fewer than 3 points there."""
+    linear = (lateral > 0.5) & (lateral < upper)
+    if linear.sum() < 3:
+        return float("nan")
+    return float(np.polyfit(lateral[linear], excess[linear], 1)[0])
 
 
 @dataclass
@@ -55,36 +75,53 @@ class Characterize:
     coast_start_speed_mps: float = 33.0
     coast_end_speed_mps: float = 5.0
     launch_duration_s: float = 150.0
+    steady_state_speeds_mps: tuple[float, ...] = (10.0, 20.0, 80 / 3.6, 30.0)
+    steady_state_steer_deg: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 50.0, 60.0)
+    steady_state_hold_s: float = 5.0
 
     def __post_init__(self) -> None:
         for name in ("circle_speed_mps", "steer_ramp_deg_per_s", "low_speed_mps"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"task.{name} must be > 0 (got {getattr(self, name)})")
+        self.steady_state_speeds_mps = tuple(float(v) for v in self.steady_state_speeds_mps)
+        self.steady_state_steer_deg = tuple(float(a) for a in self.steady_state_steer_deg)
+        if not self.steady_state_speeds_mps or min(self.steady_state_speeds_mps) <= 0:
+            raise ValueError("task.steady_state_speeds_mps must be a non-empty list of speeds > 0")
+        if len(self.steady_state_steer_deg) < 3 or min(self.steady_state_steer_deg) <= 0:
+            raise ValueError("task.steady_state_steer_deg needs >= 3 steering angles > 0")
+        if not self.steady_state_hold_s >= 2.0:
+            raise ValueError(
+                f"task.steady_state_hold_s must be >= 2 s (got {self.steady_state_hold_s})"
+            )
         if not 0 < self.coast_end_speed_mps < self.coast_start_speed_mps:
             raise ValueError("task.coast_end_speed_mps must be in (0, task.coast_start_speed_mps)")
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, dict]:
         runs: dict[str, Trajectory] = {}
-        metrics: dict[str, float | None] = {}
+        metrics: dict[str, Any] = {}
         for test in (
             self.steady_state_circle,
+            self.steady_state_holds,
             self.step_steer,
             self.braking,
             self.launch,
             self.low_speed_turn,
             self.coast_down,
         ):
-            name, trajectory, result = test(plant, metrics)
-            runs[name] = trajectory
+            name, trajectories, result = test(plant, metrics)
+            if isinstance(trajectories, Trajectory):
+                trajectories = {name: trajectories}
             metrics.update(result)
-            recorder.rollout(
-                f"characterize/{name}",
-                trajectory.time_s,
-                trajectory.states,
-                trajectory.inputs,
-                trajectory.poses,
-                extra={"lateral_accel_mps2": trajectory.lateral_accel_mps2},
-            )
+            for run_name, trajectory in trajectories.items():
+                runs[run_name] = trajectory
+                recorder.rollout(
+                    f"characterize/{run_name}",
+                    trajectory.time_s,
+                    trajectory.states,
+                    trajectory.inputs,
+                    trajectory.poses,
+                    extra={"lateral_accel_mps2": trajectory.lateral_accel_mps2},
+                )
         metrics["road_friction"] = plant.params.tire.road_friction
         metrics["total_mass_kg"] = float(plant.model.body_subtreemass[1])
         metrics["clipped_inputs"] = plant.clipped_inputs
@@ -106,18 +143,17 @@ class Characterize:
         run = simulate(plant, policy, duration, speed_mps=self.circle_speed_mps, stop=spun)
         lateral = moving_average(run.lateral_accel_mps2, int(0.5 / plant.dt))
         delta = np.deg2rad(run.inputs[:, 0]) / plant.params.steering.steering_ratio
-        # The linear range: up to 4 m/s^2, or less than half the friction limit on a slippery road.
-        upper = min(4.0, 0.45 * plant.params.tire.road_friction * G)
-        linear = (lateral > 0.5) & (lateral < upper) & (run.time_s > 2.5)
-        wheelbase = _wheelbase(plant)
+        upper = _linear_range_top(plant)
+        # The rising branch only: past the grip limit a_y falls back through the linear range
+        # with the wheel turned far, which is no longer the steady-state relation.
+        reached = np.flatnonzero(lateral >= upper)
+        rising = (run.time_s > 2.5) & (
+            np.arange(len(lateral)) < (reached[0] if reached.size else len(lateral))
+        )
         vx = run.states[:, 0]
         # delta - L r / vx isolates the understeer term K a_y without assuming constant speed.
-        excess = delta - wheelbase * run.states[:, 2] / np.maximum(vx, 1.0)
-        gradient = (
-            float(np.polyfit(lateral[linear], excess[linear], 1)[0])
-            if linear.sum() > 10
-            else np.nan
-        )
+        excess = delta - _wheelbase(plant) * run.states[:, 2] / np.maximum(vx, 1.0)
+        gradient = understeer_gradient(lateral[rising], excess[rising], upper)
         self._ramp = (run.inputs[:, 0], lateral)
         return (
             "steady_state_circle",
@@ -125,6 +161,67 @@ class Characterize:
             {
                 "understeer_gradient_deg_per_g": float(np.rad2deg(gradient) * G),
                 "max_lateral_accel_mps2": float(np.nanmax(lateral[run.time_s > 2.5])),
+            },
+        )
+
+    # ISO 4138, constant speed, discrete steering-wheel angles each held until steady.
+    def steady_state_holds(
+        self, plant: Sedan, _: dict
+    ) -> tuple[str, dict[str, Trajectory], dict[str, Any]]:
+        ratio = plant.params.steering.steering_ratio
+        wheelbase, upper = _wheelbase(plant), _linear_range_top(plant)
+        hold_s, angles = self.steady_state_hold_s, self.steady_state_steer_deg
+        settle = round(1.0 / plant.dt)  # average the last second of every hold
+        runs: dict[str, Trajectory] = {}
+        points: list[dict[str, float]] = []
+        by_speed: dict[str, dict[str, float]] = {}
+        for speed in self.steady_state_speeds_mps:
+            hold = SpeedHold(speed, plant.dt)
+
+            def policy(t: float, x: np.ndarray, hold: SpeedHold = hold) -> tuple[float, float]:
+                index = min(int(t // hold_s), len(angles) - 1)
+                start = angles[index - 1] if index else 0.0
+                # Move to the next angle at 100 deg/s, then hold it.
+                moved = min((t - index * hold_s) * 100.0, abs(angles[index] - start))
+                return (start + np.sign(angles[index] - start) * moved, hold(x[0]))
+
+            def spun(t: float, x: np.ndarray) -> bool:
+                return abs(np.arctan2(x[1], abs(x[0]) + 1e-3)) > np.deg2rad(20) or x[0] < 1.0
+
+            run = simulate(plant, policy, hold_s * len(angles), speed_mps=speed, stop=spun)
+            runs[f"steady_state_{speed:.1f}mps"] = run
+            lateral_ss, excess_ss, gains = [], [], []
+            for i, angle in enumerate(angles):
+                end = round((i + 1) * hold_s / plant.dt)
+                if end > len(run.time_s) - 1:
+                    break  # the car spun before this hold ended
+                vx, _, yaw_rate = run.states[end - settle : end].mean(axis=0)
+                delta = np.deg2rad(angle) / ratio
+                lateral_ss.append(vx * yaw_rate)  # a_y = v r in a steady turn
+                excess_ss.append(delta - wheelbase * yaw_rate / vx)
+                gains.append(yaw_rate / (vx * delta / wheelbase))
+                points.append(
+                    {
+                        "speed_mps": float(vx),
+                        "steer_wheel_deg": float(angle),
+                        "lateral_accel_mps2": float(vx * yaw_rate),
+                        "yaw_rate_radps": float(yaw_rate),
+                    }
+                )
+            gradient = understeer_gradient(np.array(lateral_ss), np.array(excess_ss), upper)
+            by_speed[f"{speed:.1f}"] = {
+                "understeer_gradient_deg_per_g": float(np.rad2deg(gradient) * G),
+                "yaw_rate_gain_ratio": float(gains[0]) if gains else float("nan"),
+            }
+        circle = by_speed.get(f"{self.circle_speed_mps:.1f}")
+        return (
+            "steady_state",
+            runs,
+            {
+                "understeer_gradient_steady_state_deg_per_g": (
+                    circle["understeer_gradient_deg_per_g"] if circle else None
+                ),
+                "steady_state": {"by_speed_mps": by_speed, "points": points},
             },
         )
 
@@ -251,6 +348,11 @@ class Characterize:
         )
 
 
+def _linear_range_top(plant: Sedan) -> float:
+    """The linear range: up to 4 m/s^2, or less than half the friction limit on a slippery road."""
+    return min(4.0, 0.45 * plant.params.tire.road_friction * G)
+
+
 def _wheelbase(plant: Sedan) -> float:
     return float(plant.model.body("corner_fl").pos[0] - plant.model.body("corner_rl").pos[0])
 
@@ -271,6 +373,18 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
         title=f"ISO 4138 ramp at {ramp.states[0, 0] * 3.6:.0f} km/h\n"
         f"K = {metrics['understeer_gradient_deg_per_g']:.2f} deg/g, "
         f"max a_y = {metrics['max_lateral_accel_mps2']:.2f} m/s²",
+    )
+    circle_speed = ramp.states[0, 0]
+    held = [
+        p
+        for p in metrics["steady_state"]["points"]
+        if abs(p["speed_mps"] - circle_speed) < 0.05 * circle_speed
+    ]
+    ax.plot(
+        [p["lateral_accel_mps2"] / G for p in held],
+        [p["steer_wheel_deg"] for p in held],
+        "o",
+        label=f"held angles: K = {metrics['understeer_gradient_steady_state_deg_per_g']:.2f} deg/g",
     )
     ax.axvline(plant.params.tire.road_friction, color="k", ls=":", label="μ g")
     ax.legend(loc="upper left")
