@@ -176,7 +176,8 @@ def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT
             f"{path} models {payload['state_dim']} states and {payload['input_dim']} inputs; "
             f"expected {state_dim} states and {input_dim} inputs"
         )
-    module_name, _, class_name = _MOVED.get(payload["class"], payload["class"]).rpartition(".")
+    saved_class = str(payload["class"])
+    module_name, _, class_name = _MOVED.get(saved_class, saved_class).rpartition(".")
     if not module_name.startswith("learners."):
         raise ValueError(f"{path} names class {payload['class']!r} outside the learners package")
     cls = getattr(importlib.import_module(module_name), class_name, None)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
 from typing import Any, Self
 
 import numpy as np
@@ -38,9 +39,9 @@ ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 class Dictionary(ABC):
     """Observables phi: (..., n) -> (..., K) of normalized states, drawn once from data.
 
-    Subclasses keep their hyperparameters as constructor keywords (what ``hyperparameters``
-    returns, saved in the model file) and their drawn arrays as attributes ending in ``_``
-    (what ``state`` returns, saved as tensors).
+    Subclasses are dataclasses: their fields are the hyperparameters (the config's keys, saved
+    in the model file; ``__post_init__`` checks them); the drawn arrays are attributes ending in
+    ``_`` (what ``state`` returns, saved as tensors).
     """
 
     @abstractmethod
@@ -52,9 +53,11 @@ class Dictionary(ABC):
         """phi(x_n): (..., n) -> (..., K)."""
 
     @property
-    @abstractmethod
     def hyperparameters(self) -> dict[str, Any]:
-        """Constructor keywords, with ``_target_`` naming the class (a config and a file entry)."""
+        """The fields, with ``_target_`` naming the class: a config block and a file entry."""
+        target = f"{type(self).__module__}.{type(self).__qualname__}"
+        values = {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
+        return {"_target_": target, **values}
 
     @abstractmethod
     def state(self) -> dict[str, np.ndarray]:
@@ -64,20 +67,16 @@ class Dictionary(ABC):
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
         """Restore what :meth:`state` returned."""
 
-    def _target(self) -> str:
-        return f"{type(self).__module__}.{type(self).__qualname__}"
-
 
 def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
-    """A dictionary from a built one, its ``hyperparameters`` (a model file) or None (RBF).
+    """A fresh, unfitted dictionary like ``value``: a built one (its copy, so that two learners
+    never share drawn arrays), its ``hyperparameters`` (a model file) or None (thin-plate RBFs).
 
     Only classes under ``learners`` are built, as :func:`learners.base.load` does for learners.
     """
     if value is None:
         return ThinPlateRBF()
-    if isinstance(value, Dictionary):
-        return value
-    values = dict(value)
+    values = dict(value.hyperparameters if isinstance(value, Dictionary) else value)
     target = str(values.pop("_target_", ""))
     module_name, _, class_name = target.rpartition(".")
     if not module_name.startswith("learners."):
@@ -90,13 +89,14 @@ def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
     return cls(**values)
 
 
+@dataclass(eq=False)
 class ThinPlateRBF(Dictionary):
     """``num_centers`` thin-plate-spline radial basis functions (0 gives DMD with inputs)."""
 
-    centers_: np.ndarray
+    num_centers: int = 100
 
-    def __init__(self, num_centers: int = 100) -> None:
-        self.num_centers = check_int("dictionary.num_centers", num_centers, 0)
+    def __post_init__(self) -> None:
+        self.num_centers = check_int("dictionary.num_centers", self.num_centers, 0)
 
     def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
         mean, std = states_n.mean(0), states_n.std(0)
@@ -108,10 +108,6 @@ class ThinPlateRBF(Dictionary):
         # r^2 log r = r^2 log(r^2) / 2, continuous with value 0 at r = 0
         return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
 
-    @property
-    def hyperparameters(self) -> dict[str, Any]:
-        return {"_target_": self._target(), "num_centers": self.num_centers}
-
     def state(self) -> dict[str, np.ndarray]:
         return {"centers": self.centers_}
 
@@ -119,6 +115,7 @@ class ThinPlateRBF(Dictionary):
         self.centers_ = np.asarray(state["centers"], dtype=np.float64)
 
 
+@dataclass(eq=False)
 class RandomFeatures(Dictionary):
     """``num_features`` random units sigma(w . x + b), w ~ U(+-weight_scale), b ~ U(+-bias_scale).
 
@@ -129,20 +126,17 @@ class RandomFeatures(Dictionary):
         bias_scale: Half-width of the uniform distribution of the biases.
     """
 
-    weights_: np.ndarray
-    biases_: np.ndarray
+    num_features: int = 100
+    activation: str = "tanh"
+    weight_scale: float = 4.0
+    bias_scale: float = 2.0
 
-    def __init__(
-        self,
-        num_features: int = 100,
-        activation: str = "tanh",
-        weight_scale: float = 4.0,
-        bias_scale: float = 2.0,
-    ) -> None:
-        self.num_features = check_int("dictionary.num_features", num_features, 1)
-        self.activation = check_choice("dictionary.activation", activation, tuple(ACTIVATIONS))
-        self.weight_scale = check_positive("dictionary.weight_scale", weight_scale)
-        self.bias_scale = check_positive("dictionary.bias_scale", bias_scale)
+    def __post_init__(self) -> None:
+        key = "dictionary."
+        self.num_features = check_int(key + "num_features", self.num_features, 1)
+        self.activation = check_choice(key + "activation", self.activation, tuple(ACTIVATIONS))
+        self.weight_scale = check_positive(key + "weight_scale", self.weight_scale)
+        self.bias_scale = check_positive(key + "bias_scale", self.bias_scale)
 
     def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
         n = states_n.shape[1]
@@ -152,16 +146,6 @@ class RandomFeatures(Dictionary):
 
     def __call__(self, x_n: np.ndarray) -> np.ndarray:
         return ACTIVATIONS[self.activation](x_n @ self.weights_.T + self.biases_)
-
-    @property
-    def hyperparameters(self) -> dict[str, Any]:
-        return {
-            "_target_": self._target(),
-            "num_features": self.num_features,
-            "activation": self.activation,
-            "weight_scale": self.weight_scale,
-            "bias_scale": self.bias_scale,
-        }
 
     def state(self) -> dict[str, np.ndarray]:
         return {"weights": self.weights_, "biases": self.biases_}

@@ -139,7 +139,7 @@ class EDMD(KoopmanLearner):
         parts.append(self.dictionary(x_n))
         return np.concatenate(parts, axis=-1)
 
-    def _state(self) -> dict[str, np.ndarray]:
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {"A": self.A_, "B": self.B_, "C": self.C_, **self.dictionary.state()}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:

@@ -118,7 +118,11 @@ def block(cls: type[_Block], value: _Block | Mapping[str, Any] | None, key: str)
     model file's hyperparameters, a test) or None (the defaults). Unknown keys fail in one line."""
     if isinstance(value, cls):
         return value
-    values = {k: v for k, v in dict(value or {}).items() if k != "_target_"}
+    if value is None:
+        return cls()
+    if not isinstance(value, Mapping):
+        raise ValueError(f"learner.{key} must be a mapping of settings (got {value!r})")
+    values = {k: v for k, v in value.items() if k != "_target_"}
     names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
     unknown = sorted(set(values) - set(names))
     if unknown:

@@ -125,11 +125,13 @@ def test_random_features_are_the_activation_of_an_affine_map_drawn_in_its_scales
 
 
 def test_the_seed_draws_the_dictionary_and_nothing_else() -> None:
-    """One seed, one draw: refits agree exactly, another seed draws other features."""
+    """One seed, one draw: refits agree exactly, another seed draws other features (each
+    learner draws into its own copy of a dictionary given to several)."""
     episodes = linear_episodes(count=2, steps=200)
+    shared = RandomFeatures(num_features=10)
 
     def fit(seed: int) -> EDMD:
-        return EDMD(RandomFeatures(num_features=10), seed=seed).fit(episodes, [], NORMALIZER)
+        return EDMD(shared, seed=seed).fit(episodes, [], NORMALIZER)
 
     first, again, other = fit(0), fit(0), fit(1)
     np.testing.assert_array_equal(first.A_, again.A_)
