@@ -26,7 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from bench.machine import describe
-from controllers import DEMPC, CondensedQP
+from controllers import DEMPC, CondensedQP, DEMPCConfig
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.data import Episode
 from harness.data.store import DataConfig, drive_episode
@@ -53,7 +53,7 @@ def closed_loop_problems(
     model: LiftedLinearModel, reference: np.ndarray, horizons: tuple[int, int]
 ) -> tuple[list[Problem], dict]:
     """Every QP of one tracking run on the sedan, in order, and the run's metrics."""
-    controller = DEMPC(model, Np=horizons[0], Nc=horizons[1])
+    controller = DEMPC(model, DEMPCConfig(Np=horizons[0], Nc=horizons[1]))
     problems: list[Problem] = []
     solve = controller.qp.solve
 
@@ -161,11 +161,11 @@ def main() -> None:
     for horizons in ((10, 7), (60, 50)):
         for label, reference in references.items():
             problems, metrics = closed_loop_problems(model, reference, horizons)
-            settings = {"Np": horizons[0], "Nc": horizons[1]}
-            ours_qp = DEMPC(model, **settings).qp
+            settings = DEMPCConfig(Np=horizons[0], Nc=horizons[1])
+            ours_qp = DEMPC(model, settings).qp
 
-            def fresh_qp(settings: dict = settings) -> CondensedQP:
-                return DEMPC(model, **settings).qp
+            def fresh_qp(settings: DEMPCConfig = settings) -> CondensedQP:
+                return DEMPC(model, settings).qp
 
             solvers: dict[str, Callable[[], Callable]] = {
                 "ours (hot start + PIQP)": lambda f=fresh_qp: f().solve,

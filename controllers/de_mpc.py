@@ -21,13 +21,15 @@ u_t = u_{t-1} + Δu_{t|t} is applied (eq. 21). Everything runs in the model's no
 from __future__ import annotations
 
 import logging
-import time
-from typing import Protocol
+import numbers
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
-from controllers.condensed_qp import CondensedQP, QPSolution
+from controllers.condensed_qp import CondensedQP
 from harness.data.episode import MinMaxNormalizer
+from harness.interfaces import LiftedModel, StepInfo
 from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 
 log = logging.getLogger(__name__)
@@ -35,71 +37,92 @@ log = logging.getLogger(__name__)
 STATES, INPUTS = 3, 2
 
 
-class KoopmanModel(Protocol):
-    """What DE-MPC needs from a learner: z⁺ = A_ z + B_ v, x_norm = C_ z, and the lift."""
+@dataclass(frozen=True)
+class DEMPCConfig:
+    """DE-MPC's settings (``conf/controller/de_mpc.yaml``), checked when built: no model needed.
 
-    A_: np.ndarray  # (N, N)
-    B_: np.ndarray  # (N, m)
-    C_: np.ndarray  # (n, N), to normalized physical state
-    normalizer_: MinMaxNormalizer
+    The YAML's ``_target_`` is this class, so a wrong value (``controller.Nc=60`` with Np = 10,
+    ``controller.Q=-5``) fails while Hydra builds the task, before any data is collected or any
+    model trained. Calling it with the fitted model builds the controller:
+    ``instantiate(cfg.controller)(model)``. Limits are physical: steering-wheel angle in degrees,
+    pedal >= 0 throttle, pedal < 0 brake in -MPa; increments are per control step.
+    """
 
-    def lift(self, x_physical: np.ndarray) -> np.ndarray: ...
+    Np: int = 10
+    Nc: int = 7
+    Q: Any = 1000.0  # scalar, n diagonal entries or n x n (OmegaConf has no float | list)
+    R: Any = 5.0  # scalar, m diagonal entries or m x m
+    rho: float = 10.0
+    steer_wheel_min_deg: float = -STEER_WHEEL_LIMIT_DEG
+    steer_wheel_max_deg: float = STEER_WHEEL_LIMIT_DEG
+    pedal_min: float = -BRAKE_MAX_MPA
+    pedal_max: float = THROTTLE_MAX
+    steer_wheel_increment_deg: float = 2.25
+    throttle_increment: float = 0.004
+    brake_increment_mpa: float = 0.18
+    dt: float = 0.01
+    tol: float = 1e-6
+    max_iter: int = 100
+    active_set: bool = True
+
+    def __post_init__(self) -> None:
+        _check_types(self)
+        _check_horizons(self.Np, self.Nc)
+        self.weights()
+        _check_positive(
+            rho=self.rho,
+            steer_wheel_increment_deg=self.steer_wheel_increment_deg,
+            throttle_increment=self.throttle_increment,
+            brake_increment_mpa=self.brake_increment_mpa,
+            dt=self.dt,
+            tol=self.tol,
+            max_iter=self.max_iter,
+        )
+        _check_range("steer_wheel", self.steer_wheel_min_deg, self.steer_wheel_max_deg, "_deg")
+        _check_range("pedal", self.pedal_min, self.pedal_max, "")
+
+    def weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
+        return _weight("Q", self.Q, STATES), _weight("R", self.R, INPUTS)
+
+    def __call__(self, model: LiftedModel, control_period_s: float | None = None) -> DEMPC:
+        """DE-MPC on ``model``; ``control_period_s`` (the plant's, when known) must equal dt.
+
+        The model predicts one step per dt and the reference is indexed by t / dt: on a plant
+        stepping at another period both would silently be wrong.
+        """
+        if control_period_s is not None and not np.isclose(self.dt, control_period_s):
+            raise ValueError(
+                f"controller.dt ({self.dt}) must equal plant.control_period_s "
+                f"({control_period_s}): the model steps once per control period"
+            )
+        return DEMPC(model, self)
 
 
 class DEMPC:
-    """Koopman MPC with PIQP; ``reset(reference)`` then ``act(x, t) -> u`` every 10 ms.
+    """Koopman MPC with PIQP; ``reset(reference)`` then ``act(x, t)`` every control period.
 
-    Keys are ``conf/controller/de_mpc.yaml``; the fitted model is given at run time. Limits are
-    physical: steering-wheel angle in degrees, pedal >= 0 throttle, pedal < 0 brake in -MPa;
-    increments are per control step.
+    Settings are a :class:`DEMPCConfig` (checked there); the fitted model is given at run time.
     """
 
-    def __init__(
-        self,
-        model: KoopmanModel,
-        *,
-        Np: int = 10,  # noqa: N803
-        Nc: int = 7,  # noqa: N803
-        Q: float | list = 1000.0,  # noqa: N803
-        R: float | list = 5.0,  # noqa: N803
-        rho: float = 10.0,
-        steer_wheel_min_deg: float = -STEER_WHEEL_LIMIT_DEG,
-        steer_wheel_max_deg: float = STEER_WHEEL_LIMIT_DEG,
-        pedal_min: float = -BRAKE_MAX_MPA,
-        pedal_max: float = THROTTLE_MAX,
-        steer_wheel_increment_deg: float = 2.25,
-        throttle_increment: float = 0.004,
-        brake_increment_mpa: float = 0.18,
-        dt: float = 0.01,
-        tol: float = 1e-6,
-        max_iter: int = 100,
-        active_set: bool = True,
-    ) -> None:
-        _check_horizons(Np, Nc)
-        weights = {"Q": _weight("Q", Q, STATES), "R": _weight("R", R, INPUTS)}
-        _check_positive(
-            rho=rho,
-            steer_wheel_increment_deg=steer_wheel_increment_deg,
-            throttle_increment=throttle_increment,
-            brake_increment_mpa=brake_increment_mpa,
-            dt=dt,
-            tol=tol,
-            max_iter=max_iter,
-        )
-        _check_range("steer_wheel", steer_wheel_min_deg, steer_wheel_max_deg, "_deg")
-        _check_range("pedal", pedal_min, pedal_max, "")
+    def __init__(self, model: LiftedModel, config: DEMPCConfig | None = None) -> None:
+        config = DEMPCConfig() if config is None else config
+        self.config = config
         self.model = model
-        self.Np, self.Nc, self.dt = int(Np), int(Nc), float(dt)
+        self.Np, self.Nc, self.dt = int(config.Np), int(config.Nc), float(config.dt)
+        Q, R = config.weights()  # noqa: N806
         A, B, C = _check_model(model)  # noqa: N806
         self.normalizer: MinMaxNormalizer = model.normalizer_
         to_v = self.normalizer.inputs
-        self.u_min = np.array([steer_wheel_min_deg, pedal_min])
-        self.u_max = np.array([steer_wheel_max_deg, pedal_max])
+        self.u_min = np.array([config.steer_wheel_min_deg, config.pedal_min])
+        self.u_max = np.array([config.steer_wheel_max_deg, config.pedal_max])
         origin = to_v(np.zeros(INPUTS))
-        pedal_step = min(throttle_increment / THROTTLE_MAX, brake_increment_mpa / BRAKE_MAX_MPA)
+        pedal_step = min(
+            config.throttle_increment / THROTTLE_MAX, config.brake_increment_mpa / BRAKE_MAX_MPA
+        )
         dv_max = np.array(
             [
-                to_v(np.array([steer_wheel_increment_deg, 0.0]))[0] - origin[0],
+                to_v(np.array([config.steer_wheel_increment_deg, 0.0]))[0] - origin[0],
                 to_v(np.array([0.0, pedal_step * THROTTLE_MAX]))[1] - origin[1],
             ]
         )
@@ -109,52 +132,48 @@ class DEMPC:
             C,
             Np=self.Np,
             Nc=self.Nc,
-            Q=weights["Q"],
-            R=weights["R"],
-            rho=rho,
+            Q=Q,
+            R=R,
+            rho=config.rho,
             v_min=to_v(self.u_min),
             v_max=to_v(self.u_max),
             dv_max=dv_max,
-            tol=tol,
-            max_iter=max_iter,
-            active_set=active_set,
+            tol=config.tol,
+            max_iter=config.max_iter,
+            active_set=config.active_set,
         )
-        self.solver_failures = 0
-        self.solve_time_s = float("nan")
-        self.last: QPSolution | None = None
         self._reference: np.ndarray | None = None
-        self.reset()
+        self._reference_steps = 0
+        self._start(None)
 
-    def reset(self, reference: np.ndarray | None = None, u_prev: np.ndarray | None = None) -> None:
+    def reset(self, reference: np.ndarray, *, u_prev: np.ndarray | None = None) -> None:
         """Start a run tracking ``reference`` ((T, 3) physical states at ``dt``) from u_prev.
 
-        The paper starts from u = 0 (wheel straight, no pedal); ``reference`` is kept when None.
+        The paper starts from u = 0 (wheel straight, no pedal).
         """
-        if reference is not None:
-            reference = np.asarray(reference, dtype=float)
-            if reference.ndim != 2 or reference.shape[1] != STATES or len(reference) < 2:
-                raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
-            normalized = self.normalizer.states(reference)
-            # Beyond its end the reference holds its last sample.
-            tail = np.repeat(normalized[-1:], self.Np + 1, axis=0)
-            self._reference = np.ascontiguousarray(np.vstack([normalized, tail]))
-            self._reference_steps = len(reference)
+        reference = np.asarray(reference, dtype=float)
+        if reference.ndim != 2 or reference.shape[1] != STATES or len(reference) < 2:
+            raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
+        normalized = self.normalizer.states(reference)
+        # Beyond its end the reference holds its last sample.
+        tail = np.repeat(normalized[-1:], self.Np + 1, axis=0)
+        self._reference = np.ascontiguousarray(np.vstack([normalized, tail]))
+        self._reference_steps = len(reference)
+        self._start(u_prev)
+
+    def _start(self, u_prev: np.ndarray | None) -> None:
+        """No plan, the hot start forgotten, the last input u_prev (default 0)."""
         u = np.zeros(INPUTS) if u_prev is None else np.asarray(u_prev, dtype=float)
         self._v_prev = self.normalizer.inputs(np.clip(u, self.u_min, self.u_max))
         self._plan: np.ndarray | None = None
         self._plan_step = 0
-        self._z = None
-        self._dv = np.zeros((self.Nc, INPUTS))
-        self._v_before = self._v_prev
-        self.solver_failures = 0
-        self.last = None
         self.qp.reset()
 
-    def act(self, x: np.ndarray, t: float) -> np.ndarray:
-        """Input (steer_wheel_deg, pedal) for measured state ``x`` at time ``t`` (s)."""
+    def act(self, x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
+        """Input (steer_wheel_deg, pedal) for measured state ``x`` at time ``t`` (s), and the
+        horizon it plans: the model's predicted states under the plan, the plan itself."""
         if self._reference is None:
             raise ValueError("DEMPC.reset(reference) must be called before act()")
-        start = time.perf_counter()
         k = min(round(t / self.dt), self._reference_steps - 1)
         z = np.asarray(self.model.lift(np.asarray(x, dtype=float)), dtype=float)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
@@ -163,52 +182,63 @@ class DEMPC:
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
             self._plan_step = 1
-            v = self._plan[0]
-            self._dv = solution.dv
+            plan, dv = self._plan, solution.dv
         else:
-            v = self._fallback(v_prev)
+            plan, dv = self._fallback(v_prev)
             log.warning(
                 "DE-MPC solve failed at t = %.2f s (%s); applying the previous plan's next move",
                 t,
                 solution.status,
             )
-        u = np.clip(self.normalizer.inputs_inverse(v), self.u_min, self.u_max)
-        self._z, self._v_before, self._v_prev, self.last = z, v_prev, v, solution
-        self.solve_time_s = time.perf_counter() - start
-        return u
+        self._v_prev = plan[0]
+        # The whole plan converts at the cost of its first move (elementwise, same bits).
+        planned_inputs = self.normalizer.inputs_inverse(plan)
+        u = np.clip(planned_inputs[0], self.u_min, self.u_max)
+        info = StepInfo(
+            predicted_states=self.normalizer.states_inverse(self.qp.predict(z, v_prev, dv)),
+            planned_inputs=planned_inputs,
+            solve_path=solution.path,
+            fallback=not solution.ok,
+        )
+        return u, info
 
-    def _fallback(self, v_prev: np.ndarray) -> np.ndarray:
-        """The previous plan's next move (held at its end); the last input if there is none."""
-        self.solver_failures += 1
+    def _fallback(self, v_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(plan, increments): the rest of the previous plan, held at its end, as the new plan
+        (its first row is the move applied); the last input held if there is no plan."""
         if self._plan is None:
-            self._dv = np.zeros((self.Nc, INPUTS))
-            return v_prev
+            return np.repeat(v_prev[None], self.Nc, axis=0), np.zeros((self.Nc, INPUTS))
         rest = self._plan[min(self._plan_step, self.Nc - 1) :]
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
-        self._dv = np.diff(np.vstack([v_prev, rest]), axis=0)
-        return rest[0]
-
-    @property
-    def predicted_states(self) -> np.ndarray:
-        """(Np, 3) physical states the model predicts over the horizon of the last ``act``."""
-        if self._z is None:
-            return np.full((self.Np, STATES), np.nan)
-        y = self.qp.predict(self._z, self._v_before, self._dv)
-        return self.normalizer.states_inverse(y)
+        return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
 
 
-def _check_horizons(Np: int, Nc: int) -> None:  # noqa: N803
+def _check_types(config: DEMPCConfig) -> None:
+    """Numbers where numbers belong: a YAML typo (``controller.Np=ten``) names its key."""
+    for spec in fields(config):
+        value = getattr(config, spec.name)
+        if spec.type == "bool" and not isinstance(value, bool):
+            raise ValueError(f"controller.{spec.name} must be true or false (got {value!r})")
+        if spec.type in ("int", "float") and (
+            isinstance(value, bool) or not isinstance(value, numbers.Real)
+        ):
+            raise ValueError(f"controller.{spec.name} must be a number (got {value!r})")
+
+
+def _check_horizons(Np: float, Nc: float) -> None:  # noqa: N803
     for key, value in (("Np", Np), ("Nc", Nc)):
-        if int(value) != value or value < 1:
+        if not float(value).is_integer() or value < 1:
             raise ValueError(f"controller.{key} must be a positive integer (got {value})")
     if Nc > Np:
         raise ValueError(f"controller.Nc ({Nc}) must be <= controller.Np ({Np})")
 
 
-def _weight(key: str, value: float | list, size: int) -> np.ndarray:
+def _weight(key: str, value: Any, size: int) -> np.ndarray:
     """A scalar (times I), a diagonal or a full symmetric positive-definite matrix."""
-    array = np.asarray(value, dtype=float)
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        array = np.full((0,), np.nan)  # not numbers, or ragged: refused by shape below
     if array.ndim == 0:
         array = array * np.eye(size)
     elif array.ndim == 1 and array.shape == (size,):
@@ -216,7 +246,7 @@ def _weight(key: str, value: float | list, size: int) -> np.ndarray:
     if array.shape != (size, size):
         raise ValueError(
             f"controller.{key} must be a scalar, {size} diagonal entries or a {size}x{size} "
-            f"matrix (got shape {np.shape(value)})"
+            f"matrix (got {value!r})"
         )
     if not np.allclose(array, array.T) or not np.all(np.isfinite(array)):
         raise ValueError(f"controller.{key} must be symmetric and finite")
@@ -248,12 +278,13 @@ def _check_range(name: str, low: float, high: float, unit: str) -> None:
         )
 
 
-def _check_model(model: KoopmanModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _check_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The contract, checked once: shapes agree and lift returns the lifted dimension."""
-    for name in ("A_", "B_", "C_", "normalizer_"):
-        if not hasattr(model, name):
-            raise ValueError(f"model has no {name}: is it fitted, and a lifted-linear learner?")
-    A, B, C = (np.asarray(getattr(model, k), dtype=float) for k in ("A_", "B_", "C_"))  # noqa: N806
+    if not isinstance(model, LiftedModel):
+        raise ValueError(
+            "model lacks A_, B_, C_, normalizer_ or lift: is it fitted and lifted-linear?"
+        )
+    A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))  # noqa: N806
     size = A.shape[0] if A.ndim == 2 else -1
     for name, array, shape in (
         ("A_", A, (size, size)),

@@ -6,9 +6,14 @@
 - ``solve_time_ms``: {median, p99, max} of the controller's whole ``act`` call (lift, QP, input
   recovery): what must fit in the control period;
 - ``deadline_misses``: steps whose ``act`` took longer than the control period;
-- ``solver_failures``: steps where the controller fell back to its previous plan;
+- ``solver_failures``: steps where the controller fell back (``StepInfo.fallback``);
+- ``steps``: control steps run;
 - ``solve_paths``: how many steps each solve path answered (DE-MPC: unconstrained,
-  active_set, piqp, failed).
+  active_set, piqp, failed);
+- ``horizon``: {Np, Nc}, the lengths of the controller's predicted states and planned inputs.
+
+The controller is seen only through :class:`~harness.interfaces.Controller`: every number above
+comes from timing ``act`` and reading the :class:`~harness.interfaces.StepInfo` it returns.
 
 Everything is recorded: the rollout (states, inputs, pose) under ``name``, and per state one
 plot ``{name}/tracking/<state>`` with the reference, the actual state and the model's prediction
@@ -24,7 +29,7 @@ from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import matplotlib
 
@@ -34,26 +39,9 @@ import numpy as np
 
 from harness.artifacts import load_arrays, save_arrays
 from harness.figures import save_figure
-from harness.plant import INPUT_NAMES, STATE_NAMES
+from harness.interfaces import INPUT_NAMES, STATE_NAMES, Controller, Plant, StepInfo
 from harness.recorder import Recorder
 from harness.rollout import Trajectory
-
-
-class TrackingController(Protocol):
-    def reset(self, reference: np.ndarray) -> None: ...
-
-    def act(self, x: np.ndarray, t: float) -> np.ndarray: ...
-
-
-class TrackingPlant(Protocol):
-    dt: float
-
-    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray: ...
-
-    def step(self, u: np.ndarray) -> np.ndarray: ...
-
-    @property
-    def pose(self) -> np.ndarray: ...
 
 
 @dataclass
@@ -66,8 +54,8 @@ class TrackingTrajectory(Trajectory):
 
 
 def track(
-    plant: TrackingPlant,
-    controller: TrackingController,
+    plant: Plant,
+    controller: Controller,
     reference: np.ndarray,
     *,
     name: str,
@@ -86,31 +74,29 @@ def track(
     steps = len(reference)
     states, inputs, poses = np.empty((steps, 3)), np.zeros((steps, 2)), np.empty((steps, 3))
     solve_time = np.full(steps, np.nan)
-    horizon = getattr(controller, "Np", 0)
-    predicted = np.full((steps, horizon, 3), np.nan)
-    paths: Counter[str] = Counter()
+    infos: list[StepInfo] = []
     x = plant.reset(speed_mps=float(reference[0, 0]))
     controller.reset(reference)
     for k in range(steps - 1):
         states[k], poses[k] = x, plant.pose
         start = time.perf_counter()
-        u = controller.act(x, k * plant.dt)
+        u, info = controller.act(x, k * plant.dt)
         solve_time[k] = time.perf_counter() - start
-        inputs[k] = u
-        if horizon:
-            predicted[k] = controller.predicted_states
-        last = getattr(controller, "last", None)
-        paths[getattr(last, "path", "n/a")] += 1
-        x = plant.step(u)
+        inputs[k], x = u, plant.step(u)
+        infos.append(info)
         if not np.all(np.isfinite(x)):
             raise RuntimeError(f"plant state became non-finite at t = {k * plant.dt:.2f} s")
     states[-1], poses[-1], inputs[-1] = x, plant.pose, inputs[-2]
     time_s = np.arange(steps) * plant.dt
+    # The last sample has no step after it, hence no prediction.
+    predicted = [info.predicted_states for info in infos]
+    predicted.append(np.full_like(predicted[0], np.nan))
     run = TrackingTrajectory(
-        time_s, states, inputs, poses, reference, predicted, solve_time[:-1].copy()
+        time_s, states, inputs, poses, reference, np.stack(predicted), solve_time[:-1].copy()
     )
-    metrics = tracking_metrics(run, plant.dt, getattr(controller, "solver_failures", 0))
-    metrics["solve_paths"] = dict(paths)
+    metrics = tracking_metrics(run, plant.dt, sum(info.fallback for info in infos))
+    metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))
+    metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
     _record(recorder, name, run, plant.dt)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)

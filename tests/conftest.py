@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
-from harness.characterize import Characterize
+from harness.paths import REPO_ROOT
 from harness.plant import Sedan
 from harness.recorder import Recorder
+from harness.tasks.characterize import Characterize
+
+# `python -m harness` in a subprocess imports this checkout, not the one pip installed editable.
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])
+)
 
 
 @pytest.fixture(scope="session")

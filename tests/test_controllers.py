@@ -4,6 +4,9 @@ in one line that names their key, the configs build, and the loop closes on the 
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import piqp
@@ -11,21 +14,18 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from controllers import DEMPC, CondensedQP
-from controllers.lifted_linear import (
-    LiftedLinearModel,
-    ModelPlant,
-    feasible_reference,
-    fit_lifted_linear,
-)
-from controllers.lifted_linear import toy_linear_model as linear_model
+from controllers import DEMPC, CondensedQP, DEMPCConfig, QPSolution, check_controller_config
+from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.data import Episode
 from harness.data.store import DataConfig, drive_episode
+from harness.interfaces import Controller, LiftedModel, Plant, StepInfo
 from harness.paths import CONF_DIR
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import from_episode
 from harness.tracking import track
+from tests.toy_models import ModelPlant, feasible_reference
+from tests.toy_models import toy_linear_model as linear_model
 
 TOL = 1e-6
 
@@ -164,23 +164,51 @@ def test_exact_model_tracks_a_feasible_reference() -> None:
     reference = feasible_reference(model)
     plant = ModelPlant(model, x0=reference[0])
     for horizons in ({"Np": 10, "Nc": 7}, {"Np": 60, "Nc": 50}):
-        metrics, _ = track(
-            plant, DEMPC(model, **horizons), reference, name="exact", recorder=Recorder()
-        )
+        controller = DEMPC(model, DEMPCConfig(**horizons))
+        metrics, _ = track(plant, controller, reference, name="exact", recorder=Recorder())
         assert metrics["rmse"]["vx"] < 0.05  # of a 40 m/s range
         assert metrics["rmse"]["vy"] < 1e-3 and metrics["rmse"]["yaw_rate"] < 1e-3
-        assert metrics["solver_failures"] == 0
+        assert metrics["solver_failures"] == 0 and "failed" not in metrics["solve_paths"]
+        assert metrics["horizon"] == horizons
 
 
-def test_a_failed_solve_falls_back_to_the_previous_plan_and_is_counted(monkeypatch, caplog):
+def test_the_contracts_hold_for_the_controller_the_model_and_the_test_plant() -> None:
     model = linear_model()
-    controller = DEMPC(model, active_set=False)
+    assert isinstance(model, LiftedModel)
+    assert isinstance(DEMPC(model), Controller)
+    plant = ModelPlant(model)
+    assert isinstance(plant, Plant)
+    assert plant.fingerprint != ModelPlant(model, x0=np.array([20.0, 0.0, 0.0])).fingerprint
+
+
+def test_act_returns_the_input_and_the_horizon_it_plans() -> None:
+    """StepInfo: (Np, 3) states the model predicts under the (Nc, 2) plan, whose first move is u."""
+    model = linear_model()
+    controller = DEMPC(model, DEMPCConfig(Np=12, Nc=5))
+    reference = feasible_reference(model, steps=50)
+    controller.reset(reference)
+    x = np.array([20.0, 0.3, -0.1])
+    u, info = controller.act(x, 0.0)
+    assert isinstance(info, StepInfo) and not info.fallback
+    assert info.predicted_states.shape == (12, 3) and info.planned_inputs.shape == (5, 2)
+    assert info.solve_path in ("unconstrained", "active_set", "piqp")
+    np.testing.assert_allclose(info.planned_inputs[0], u)
+    # The prediction is the model stepped under the plan, its last move held from Nc to Np.
+    plan = np.vstack([info.planned_inputs, np.repeat(info.planned_inputs[-1:], 7, axis=0)])
+    plant = ModelPlant(model, x0=x)
+    stepped = np.array([plant.step(move) for move in plan])
+    np.testing.assert_allclose(info.predicted_states, stepped, atol=1e-9)
+
+
+def test_a_failed_solve_falls_back_to_the_previous_plan_and_says_so(monkeypatch, caplog):
+    model = linear_model()
+    controller = DEMPC(model, DEMPCConfig(active_set=False))
     target = np.tile([30.0, 1.0, 0.5], (50, 1))  # far away: constraints active, PIQP solves
     controller.reset(np.vstack([[20.0, 0.0, 0.0], target]))
     x = np.array([20.0, 0.0, 0.0])
-    controller.act(x, 0.0)
-    assert controller.last.path == "piqp"
-    plan = controller._plan.copy()
+    _, info = controller.act(x, 0.0)
+    assert info.solve_path == "piqp" and not info.fallback
+    plan = info.planned_inputs
 
     class FailingSolver:
         settings = controller.qp._piqp.settings
@@ -193,12 +221,36 @@ def test_a_failed_solve_falls_back_to_the_previous_plan_and_is_counted(monkeypat
 
     monkeypatch.setattr(controller.qp, "_piqp", FailingSolver())
     with caplog.at_level(logging.WARNING):
-        u1 = controller.act(x, 0.01)
-        u2 = controller.act(x, 0.02)
-    assert controller.solver_failures == 2 and controller.last.path == "failed"
-    np.testing.assert_allclose(u1, model.normalizer_.inputs_inverse(plan[1]))
-    np.testing.assert_allclose(u2, model.normalizer_.inputs_inverse(plan[2]))
+        u1, info1 = controller.act(x, 0.01)
+        u2, info2 = controller.act(x, 0.02)
+    assert info1.fallback and info2.fallback and info2.solve_path == "failed"
+    np.testing.assert_allclose(u1, plan[1])
+    np.testing.assert_allclose(u2, plan[2])
+    # What is left of the plan, its last move held to the control horizon.
+    np.testing.assert_allclose(info2.planned_inputs, np.vstack([plan[2:], plan[-1:], plan[-1:]]))
     assert "previous plan" in caplog.text
+
+
+def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
+    model = linear_model()
+    reference = feasible_reference(model, steps=40)
+    controller = DEMPC(model)
+    solve = controller.qp.solve
+    calls = []
+
+    def every_third_fails(z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
+        calls.append(1)
+        solution = solve(z, v_prev, y_ref)
+        if len(calls) % 3:
+            return solution
+        return QPSolution(solution.dv, 0.0, "failed", 100, "PIQP_MAX_ITER_REACHED")
+
+    monkeypatch.setattr(controller.qp, "solve", every_third_fails)
+    metrics, _ = track(
+        ModelPlant(model, x0=reference[0]), controller, reference, name="x", recorder=Recorder()
+    )
+    assert metrics["steps"] == len(calls) == 39
+    assert metrics["solver_failures"] == metrics["solve_paths"]["failed"] == 13
 
 
 @pytest.mark.parametrize(
@@ -213,12 +265,69 @@ def test_a_failed_solve_falls_back_to_the_previous_plan_and_is_counted(monkeypat
         ({"steer_wheel_min_deg": 10, "steer_wheel_max_deg": -10}, "controller.steer_wheel_min"),
         ({"steer_wheel_increment_deg": -1}, "controller.steer_wheel_increment_deg must be > 0"),
         ({"Nc": 0}, "controller.Nc must be a positive integer"),
+        ({"Np": 7.5}, "controller.Np must be a positive integer"),
+        ({"Np": "ten"}, "controller.Np must be a number"),
+        ({"Q": [1.0, 1.0]}, "controller.Q must be a scalar, 3 diagonal entries or a 3x3"),
+        ({"R": [[1.0, 0.0, 0.0]]}, "controller.R must be a scalar, 2 diagonal entries or a 2x2"),
+        ({"dt": 0.0}, "controller.dt must be > 0"),
+        ({"tol": -1e-6}, "controller.tol must be > 0"),
+        ({"active_set": "yes"}, "controller.active_set must be true or false"),
+        ({"pedal_max": 0.5}, "must lie within the plant's range"),
     ],
 )
 def test_a_wrong_setting_names_its_key_in_one_line(settings: dict, message: str) -> None:
+    """The settings alone are checked: no model is needed to refuse them."""
     with pytest.raises(ValueError) as info:
-        DEMPC(linear_model(), **settings)
+        DEMPCConfig(**settings)
     assert message in str(info.value) and "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["controller.Np=3", "controller.Nc=7"], "controller.Nc (7) must be <= controller.Np (3)"),
+        (["controller.Q=-5"], "controller.Q must be positive definite"),
+        (["controller.Q=[1,2]"], "controller.Q must be a scalar, 3 diagonal entries"),
+        (["controller=de_mpc_long", "controller.Np=40"], "controller.Nc (50) must be <="),
+    ],
+)
+def test_a_wrong_controller_config_fails_from_the_composed_config_alone(
+    overrides: list[str], message: str
+) -> None:
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    with pytest.raises(ValueError) as info:
+        check_controller_config(cfg.controller)
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_wrong_controller_config_stops_the_job_before_any_data(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "harness",
+            "controller.Q=-5",
+            "recorder=none",
+            f"data.root={tmp_path}/datasets",
+            f"hydra.run.dir={tmp_path}/run",
+        ],
+        cwd=Path(__file__).resolve().parent.parent,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2
+    assert "error: ValueError: controller.Q must be positive definite" in result.stderr
+    assert not (tmp_path / "datasets").exists()
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_the_controller_steps_at_the_plants_control_period() -> None:
+    with pytest.raises(ValueError) as info:
+        DEMPCConfig(dt=0.02)(linear_model(), control_period_s=0.01)
+    assert "controller.dt (0.02) must equal plant.control_period_s (0.01)" in str(info.value)
+    assert isinstance(DEMPCConfig()(linear_model(), control_period_s=0.01), DEMPC)
 
 
 def test_a_model_that_breaks_the_contract_is_refused() -> None:
@@ -232,7 +341,9 @@ def test_a_model_that_breaks_the_contract_is_refused() -> None:
 def test_the_configs_instantiate_with_the_model_given_at_run_time(name, horizons) -> None:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(config_name="config", overrides=[f"controller={name}"])
-    controller = instantiate(cfg.controller)(linear_model())
+    settings = instantiate(cfg.controller)
+    assert settings == check_controller_config(cfg.controller)
+    controller = settings(linear_model())
     assert isinstance(controller, DEMPC) and (controller.Np, controller.Nc) == horizons
     np.testing.assert_allclose(controller.qp.Q, 1000 * np.eye(3))
     # The paper's limits, mapped onto the normalized inputs and back.
@@ -268,12 +379,12 @@ def test_a_short_closed_loop_on_the_sedan_runs_and_reports(quick_model_and_episo
     model, episode = quick_model_and_episode
     assert model.A_.shape == (13, 13)
     reference = from_episode(episode)[600:800]  # 2 s while moving
-    metrics, run = track(
-        Sedan(), DEMPC(model, Np=60, Nc=50), reference, name="sedan", recorder=Recorder()
-    )
+    plant = Sedan()
+    controller = DEMPCConfig(Np=60, Nc=50)(model, plant.dt)
+    metrics, run = track(plant, controller, reference, name="sedan", recorder=Recorder())
     assert set(metrics) >= {"rmse", "solve_time_ms", "deadline_misses", "solver_failures"}
     assert set(metrics["rmse"]) == {"vx", "vy", "yaw_rate"}
     assert set(metrics["solve_time_ms"]) == {"median", "p99", "max"}
     assert all(np.isfinite(v) for v in metrics["rmse"].values())
     assert metrics["rmse"]["vx"] < 2.0
-    assert run.predicted.shape == (200, 60, 3)
+    assert run.predicted.shape == (200, 60, 3) and metrics["horizon"] == {"Np": 60, "Nc": 50}

@@ -5,9 +5,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from harness.artifacts import load_arrays
+from harness.data.episode import Episode
 
 TINY = [
     "data.episodes=3",
@@ -15,8 +20,22 @@ TINY = [
     "data.max_steps=400",
     "data.split={train: 1, validation: 1, test: 1}",
     "recorder=none",
-    "task.tracking_references=[test_episode]",
+    "~reference@task.references.double_lane_change",  # the test drive only
 ]
+
+
+class SteadyCruise:
+    """A reference of no standard, added by configuration alone (a test's own config group)."""
+
+    def __init__(self, speed_mps: float, seconds: float) -> None:
+        self.speed_mps, self.seconds = speed_mps, seconds
+
+    def label(self, name: str, episodes: Sequence[Episode]) -> str:
+        return name
+
+    def build(self, dt: float, episodes: Sequence[Episode]) -> np.ndarray:
+        steps = round(self.seconds / dt)
+        return np.column_stack([np.full(steps, self.speed_mps), np.zeros(steps), np.zeros(steps)])
 
 
 def run_main(tmp: Path, run_dir: Path, *overrides: str) -> dict:
@@ -57,6 +76,10 @@ def test_metrics_follow_the_public_contract(edmd_run) -> None:
     assert set(tracking["solve_time_ms"]) == {"median", "p99", "max"}
     assert tracking["horizon"] == {"Np": 10, "Nc": 7}
     assert {"deadline_misses", "solver_failures"} <= set(tracking)
+    # the top level is the first reference's run: the first test drive
+    assert tracking["reference"] == f"test_episode/{test_episode}"
+    first = tracking["references"][f"test_episode/{test_episode}"]
+    assert {k: tracking[k] for k in first} == first
     for figure in (
         "data_coverage.png",
         f"prediction_{test_episode}.png",
@@ -74,17 +97,49 @@ def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
     assert again["prediction"] == metrics["prediction"]
 
 
+def test_a_reference_added_by_config_alone_is_tracked(edmd_run) -> None:
+    tmp, run_dir, _ = edmd_run
+    group = tmp / "more_conf" / "reference"
+    group.mkdir(parents=True)
+    (group / "steady.yaml").write_text(
+        "_target_: tests.test_pipeline.SteadyCruise\nspeed_mps: 15.0\nseconds: 2.0\n"
+    )
+    metrics = run_main(
+        tmp,
+        tmp / "steady",
+        "learner=edmd",
+        f"task.model_path={run_dir}/model_edmd.pt",
+        f"hydra.searchpath=[file://{tmp / 'more_conf'}]",
+        "+reference@task.references.steady=steady",
+    )
+    (episode,) = metrics["data"]["split"]["test"]
+    tracking = metrics["tracking"]
+    assert list(tracking["references"]) == [f"test_episode/{episode}", "steady"]
+    assert tracking["reference"] == f"test_episode/{episode}"  # still the first reference
+    arrays = load_arrays(tmp / "steady" / "tracking_de_mpc_steady.npz")
+    reference = SteadyCruise(15.0, 2.0).build(0.01, [])
+    np.testing.assert_array_equal(arrays["reference"], reference)
+    assert arrays["states"].shape == reference.shape  # the loop drove the whole reference
+
+
 def test_deep_edmd_runs_the_whole_pipeline_on_a_tiny_budget(tmp_path: Path) -> None:
+    run_dir = tmp_path / "deep"
     metrics = run_main(
         tmp_path,
-        tmp_path / "deep",
+        run_dir,
         "learner=deep_edmd",
         "learner.training.max_steps=30",
         "learner.training.eval_every_steps=10",
         "controller=de_mpc_long",
     )
     assert metrics["training"]["learner"] == "deep_edmd"
-    assert metrics["tracking"]["horizon"] == {"Np": 60, "Nc": 50}
+    history = json.loads((run_dir / "training_history.json").read_text())
+    assert history["step"] and max(history["step"]) <= 30  # the budget held
+    (episode,) = metrics["data"]["split"]["test"]
+    assert all(np.isfinite(v) for v in metrics["prediction"][episode]["rmse"].values())
+    tracking = metrics["tracking"]
+    assert tracking["horizon"] == {"Np": 60, "Nc": 50}  # controller=de_mpc_long reached the MPC
+    assert all(np.isfinite(v) for v in tracking["rmse"].values())
 
 
 def test_a_non_koopman_learner_skips_tracking_and_says_why(tmp_path: Path) -> None:

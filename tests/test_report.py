@@ -10,7 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from harness.report import find_jobs, report
+from harness.report import Run, read_runs, report
+from harness.report.figures import loss_figure
+from harness.report.tables import generalization_table
 from tests.test_pipeline import TINY
 
 
@@ -48,7 +50,7 @@ def tiny_sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_sweep_jobs_get_readable_directories(tiny_sweep: Path) -> None:
-    names = [job.name for job in find_jobs(tiny_sweep)]
+    names = [job.name for job in read_runs(tiny_sweep)]
     for learner in ("edmd", "elm_edmd"):
         for seed in (0, 1):
             assert sum(f"learner={learner}," in n and f"seed={seed}" in n for n in names) == 1
@@ -79,7 +81,7 @@ def test_a_job_without_metrics_is_named(tiny_sweep: Path, tmp_path: Path) -> Non
     copy = tmp_path / "copy"
     shutil.copytree(tiny_sweep, copy)
     (victim,) = [
-        j.path for j in find_jobs(copy) if "learner=edmd," in j.name and "seed=1" in j.name
+        j.path for j in read_runs(copy) if "learner=edmd," in j.name and "seed=1" in j.name
     ]
     (victim / "metrics.json").unlink()
     report(copy)
@@ -103,9 +105,6 @@ def test_the_report_redraws_the_paper_figures_with_every_learner(tiny_sweep: Pat
 
 
 def test_loss_curves_show_every_seed_of_every_trained_network(tmp_path: Path) -> None:
-    from harness.report import Job
-    from harness.report_figures import loss_figure
-
     jobs = []
     for learner in ("dnn", "deep_edmd"):
         for seed in (0, 1):
@@ -119,15 +118,13 @@ def test_loss_curves_show_every_seed_of_every_trained_network(tmp_path: Path) ->
                 "stopped": "max_steps",
             }
             (path / "training_history.json").write_text(json.dumps(history))
-            jobs.append(Job(path, {"learner": learner, "seed": str(seed)}))
+            jobs.append(Run(path, choices={"learner": learner}, seed=seed))
     figure = loss_figure(jobs, tmp_path)
     assert figure is not None and figure.stat().st_size > 10_000
-    assert loss_figure([Job(tmp_path / "edmd", {"learner": "edmd"})], tmp_path) is None
+    assert loss_figure([Run(tmp_path / "edmd", choices={"learner": "edmd"})], tmp_path) is None
 
 
 def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others() -> None:
-    from harness.report import Job, generalization_table
-
     def section(value: float) -> dict:
         rmse = {"vx": value, "vy": value, "yaw_rate": value}
         tracking = {
@@ -139,9 +136,11 @@ def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others()
         return {"prediction": {"episode_0001": {"rmse": rmse}}, "tracking": tracking}
 
     jobs = [
-        Job(
+        Run(
             Path(f"edmd-{seed}"),
-            {"learner": "edmd", "seed": str(seed)},
+            choices={"learner": "edmd", "plant": "sedan"},
+            overrides={"learner": "edmd", "seed": str(seed)},
+            seed=seed,
             metrics={**section(1.0 + seed), "generalization": {"sedan_wet": section(3.0 + seed)}},
         )
         for seed in (0, 1)
@@ -151,3 +150,47 @@ def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others()
     assert rows["sedan"][:5] == ["edmd", "sedan", "sedan", "—", "2"]
     assert rows["sedan"][5].startswith("1.5 ±") and rows["sedan_wet"][5].startswith("3.5 ±")
     assert rows["sedan_wet"][-1].startswith("7 ±")  # lane change, mean of 6 and 8
+
+
+def write_job(path: Path, choices: dict, overrides: list[str], seed: int, metrics: dict) -> Path:
+    """A job directory as Hydra leaves it (the parts the report reads) with its metrics."""
+    (path / ".hydra").mkdir(parents=True)
+    hydra = {"hydra": {"runtime": {"choices": choices}, "overrides": {"task": overrides}}}
+    (path / ".hydra" / "hydra.yaml").write_text(json.dumps(hydra))  # JSON is YAML
+    (path / ".hydra" / "config.yaml").write_text(f"seed: {seed}\n")
+    (path / "metrics.json").write_text(json.dumps(metrics))
+    return path
+
+
+def test_rows_are_named_by_the_jobs_choices_not_by_their_command_lines(tmp_path: Path) -> None:
+    """A job that overrides nothing is named by the learner, plant and controller Hydra chose
+    (here an experiment chose them), and its seed is the one its config ran with."""
+    rmse = {"vx": 1.0, "vy": 2.0, "yaw_rate": 3.0}
+    tracking = {
+        "reference": "lane/episode_0002",
+        "references": {"lane/episode_0002": {"rmse": rmse}, "alpha": {"rmse": rmse}},
+    }
+    choices = {"learner": "dnn", "plant": "sedan_wet", "controller": "de_mpc_long"}
+    for seed in (3, 4):
+        write_job(
+            tmp_path / f"job{seed}",
+            choices,
+            ["experiment=mine", "learner.ridge=1e-3"],
+            seed,
+            {"prediction": {"episode_0002": {"rmse": rmse}}, "tracking": tracking},
+        )
+    runs = read_runs(tmp_path)
+    assert [(r.learner, r.plant, r.controller, r.seed) for r in runs] == [
+        ("dnn", "sedan_wet", "de_mpc_long", 3),
+        ("dnn", "sedan_wet", "de_mpc_long", 4),
+    ]
+    assert runs[0].overrides == {"experiment": "mine", "learner.ridge": "0.001"}  # Hydra's form
+    report(tmp_path)
+    prediction = (tmp_path / "report" / "prediction.csv").read_text().splitlines()
+    assert prediction[1].startswith("dnn,sedan_wet,—,episode_0002,2,")
+    tracking_rows = (tmp_path / "report" / "tracking.csv").read_text().splitlines()[1:]
+    # the controller the job chose; the reference it tracked first comes first
+    assert [row.split(",")[:4] for row in tracking_rows] == [
+        ["dnn", "de_mpc_long", "?/?", "lane"],
+        ["dnn", "de_mpc_long", "?/?", "alpha"],
+    ]

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.figure import Figure
 
-from controllers import DEMPC
-from controllers.lifted_linear import ModelPlant, feasible_reference
-from controllers.lifted_linear import toy_linear_model as linear_model
+from controllers import DEMPC, DEMPCConfig
+from harness import tracking
 from harness.data import Episode
 from harness.recorder import Recorder, RerunRecorder
 from harness.references import (
@@ -20,6 +20,8 @@ from harness.references import (
     lane_offset_m,
 )
 from harness.tracking import track
+from tests.toy_models import ModelPlant, feasible_reference
+from tests.toy_models import toy_linear_model as linear_model
 
 G = 9.81
 
@@ -94,13 +96,21 @@ class ListeningRecorder(Recorder):
         self.series_calls.append((path, time_s, values))
 
 
-def test_a_tracking_run_reports_records_and_plots(tmp_path: Path) -> None:
+def test_a_tracking_run_reports_records_and_plots(tmp_path: Path, monkeypatch) -> None:
     model = linear_model()
     reference = feasible_reference(model, steps=300)
     recorder = ListeningRecorder()
+    figures: list[Figure] = []
+    save_figure = tracking.save_figure
+
+    def keep_figure(fig: Figure, path: Path) -> Path:
+        figures.append(fig)
+        return save_figure(fig, path)
+
+    monkeypatch.setattr(tracking, "save_figure", keep_figure)
     metrics, run = track(
         ModelPlant(model, x0=reference[0]),
-        DEMPC(model, Np=10, Nc=7),
+        DEMPC(model, DEMPCConfig(Np=10, Nc=7)),
         reference,
         name="dlc",
         recorder=recorder,
@@ -110,6 +120,7 @@ def test_a_tracking_run_reports_records_and_plots(tmp_path: Path) -> None:
     assert set(metrics["solve_time_ms"]) == {"median", "p99", "max"}
     assert metrics["deadline_misses"] == 0 and metrics["solver_failures"] == 0
     assert sum(metrics["solve_paths"].values()) == metrics["steps"] == 299
+    assert metrics["horizon"] == {"Np": 10, "Nc": 7}
     assert run.states.shape == reference.shape and run.predicted.shape == (300, 10, 3)
     # The rollout, then one plot per state with reference, actual and prediction, then the
     # whole horizon as columns.
@@ -120,7 +131,20 @@ def test_a_tracking_run_reports_records_and_plots(tmp_path: Path) -> None:
     assert ("dlc/tracking/yaw_rate", "predicted_10_ahead") in keys
     horizon = next(v for p, _, v in recorder.series_calls if p == "dlc/horizon/vy")["ahead"]
     assert horizon.shape == (300, 10)
-    assert (tmp_path / "tracking.png").stat().st_size > 10_000
+    # The figure: vx, vy, r each with the reference and the run, then the two inputs.
+    (figure,) = figures
+    axes = figure.axes
+    assert len(axes) == 5
+    for i in range(3):
+        reference_line, actual = axes[i].get_lines()
+        np.testing.assert_array_equal(reference_line.get_ydata(), reference[:, i])
+        np.testing.assert_array_equal(actual.get_ydata(), run.states[:, i])
+        np.testing.assert_array_equal(actual.get_xdata(), run.time_s)
+    for j in range(2):
+        (applied,) = axes[3 + j].get_lines()
+        np.testing.assert_array_equal(applied.get_ydata(), run.inputs[:, j])
+    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["reference", "dlc"]
+    assert (tmp_path / "tracking.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_a_run_writes_a_rerun_recording(tmp_path: Path) -> None:

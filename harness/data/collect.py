@@ -1,10 +1,9 @@
-"""``task=collect``: make (or reuse) the dataset, then record and summarise its coverage."""
+"""The data stage of ``task=collect`` and ``task=pipeline``: make (or reuse) the dataset, then
+record and summarise its coverage (the tasks themselves are in ``harness/tasks/``)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from harness.data import coverage
 from harness.data.store import DataConfig, Dataset, collect_counted, load
@@ -42,14 +41,3 @@ def prepare(
         "normalizer": dataset.normalizer.to_dict(),
     }
     return dataset, metrics
-
-
-class Collect:
-    """The data stage alone: ``python -m harness task=collect data=paper``."""
-
-    def __init__(self, data: Mapping[str, Any]) -> None:
-        self.data = DataConfig.from_config(data)
-
-    def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
-        _, metrics = prepare(plant, self.data, recorder, output_dir)
-        return {"data": metrics}

@@ -1,6 +1,6 @@
-"""The paper's figures from a sweep: every learner on one plot, redrawn from the jobs' arrays.
+"""The paper's figures from a sweep's runs: every learner on one plot, redrawn from their arrays.
 
-Jobs that differ only by learner (and its ``learner.*`` settings) and seed share a figure;
+Runs that differ only by learner (and its ``learner.*`` settings) and seed share a figure;
 each learner is drawn from its lowest seed (the figures show one run each, the tables show the
 spread over seeds):
 
@@ -21,7 +21,6 @@ import logging
 from collections import defaultdict
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -32,30 +31,20 @@ from harness.artifacts import load_arrays
 from harness.data.episode import Episode
 from harness.figures import save_figure
 from harness.prediction import plot_prediction
-from harness.report import common_overrides, variant
+from harness.report.jobs import Run, common_overrides, variant
 from harness.tracking import load_run, plot_tracking
-
-if TYPE_CHECKING:
-    from harness.report import Job
 
 log = logging.getLogger(__name__)
 
 _ACROSS = {"learner", "seed"}
 
 
-def _seed(job: Job) -> int:
-    try:
-        return int(job.overrides.get("seed", 0))
-    except ValueError:
-        return 0
-
-
-def _groups(jobs: Iterable[Job]) -> dict[str, list[Job]]:
-    """Jobs by what they share besides learner and seed; the key is a filename suffix naming
+def _groups(jobs: Iterable[Run]) -> dict[str, list[Run]]:
+    """Runs by what they share besides learner and seed; the key is a filename suffix naming
     what differs within the sweep (empty when nothing does)."""
     jobs = list(jobs)
     common = common_overrides(jobs)
-    groups: dict[str, list[Job]] = defaultdict(list)
+    groups: dict[str, list[Run]] = defaultdict(list)
     for job in jobs:
         groups[_suffix(variant(job, common, named=_describes_learner))].append(job)
     return dict(groups)
@@ -71,14 +60,14 @@ def _suffix(text: str) -> str:
     return f"__{safe}" if safe else ""
 
 
-def _lowest_seed_per_learner(jobs: Iterable[Job]) -> dict[str, Job]:
-    chosen: dict[str, Job] = {}
-    for job in sorted(jobs, key=_seed):
-        chosen.setdefault(job.overrides.get("learner", "deep_edmd"), job)
+def _lowest_seed_per_learner(jobs: Iterable[Run]) -> dict[str, Run]:
+    chosen: dict[str, Run] = {}
+    for job in sorted(jobs, key=lambda job: job.seed):
+        chosen.setdefault(job.learner, job)
     return dict(sorted(chosen.items()))
 
 
-def prediction_figures(jobs: list[Job], out: Path, subdir: str = "") -> list[Path]:
+def prediction_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Path]:
     """One figure per test episode (per group): the drive and every learner's prediction."""
     written = []
     for suffix, members in _groups(jobs).items():
@@ -107,7 +96,7 @@ def prediction_figures(jobs: list[Job], out: Path, subdir: str = "") -> list[Pat
     return written
 
 
-def tracking_figures(jobs: list[Job], out: Path, subdir: str = "") -> list[Path]:
+def tracking_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Path]:
     """One figure per controller and reference (per group): every learner's closed loop."""
     written = []
     for suffix, members in _groups(jobs).items():
@@ -125,11 +114,11 @@ def tracking_figures(jobs: list[Job], out: Path, subdir: str = "") -> list[Path]
     return written
 
 
-def loss_figure(jobs: list[Job], out: Path) -> Path | None:
+def loss_figure(jobs: list[Run], out: Path) -> Path | None:
     """Loss curves of every trained network, a panel per learner, a colour per seed."""
     histories: dict[str, list[tuple[int, dict]]] = defaultdict(list)
     for suffix, members in _groups(jobs).items():
-        for job in sorted(members, key=_seed):
+        for job in sorted(members, key=lambda job: job.seed):
             path = job.path / "training_history.json"
             if not path.exists():
                 continue
@@ -138,10 +127,10 @@ def loss_figure(jobs: list[Job], out: Path) -> Path | None:
             except json.JSONDecodeError:
                 log.warning("%s is not valid JSON; its loss curve is left out", path)
                 continue
-            label = job.overrides.get("learner", "deep_edmd")
+            label = job.learner
             if suffix:
                 label += f" ({suffix.removeprefix('__')})"
-            histories[label].append((_seed(job), history))
+            histories[label].append((job.seed, history))
     if not histories:
         return None
     fig, axes = plt.subplots(
@@ -161,7 +150,7 @@ def loss_figure(jobs: list[Job], out: Path) -> Path | None:
     return save_figure(fig, out / "loss_curves.png")
 
 
-def figures(jobs: list[Job], out: Path) -> list[Path]:
+def figures(jobs: list[Run], out: Path) -> list[Path]:
     """Every figure of the sweep's finished ``jobs`` into ``out``; returns the files written.
 
     Runs evaluated on other plants (``generalization/<plant>/``) get the same figures under

@@ -10,10 +10,10 @@ Sections written to ``metrics.json``:
   mean, std, min and max over ``robustness_repeats`` predictions;
 - ``tracking``: DE-MPC on the plant (Koopman learners only). The top-level keys
   (``rmse``, ``solve_time_ms``, ``deadline_misses``, ``solver_failures``) are the paper's
-  experiment, tracking the first test episode; ``tracking.references.<name>`` holds every
-  reference tracked, e.g. the ISO 3888 double lane change; ``tracking.controllers.<name>``
-  the same for every controller (``controller`` first, then ``task.extra_controllers``, e.g.
-  both of the paper's horizons);
+  experiment, tracking the first reference (the first test episode); ``tracking.references``
+  holds every reference of ``task.references`` (``conf/reference/``), e.g. the ISO 3888 double
+  lane change; ``tracking.controllers.<name>`` the same for every controller (``controller``
+  first, then ``task.extra_controllers``, e.g. both of the paper's horizons);
 - ``generalization.<plant>`` (``task.other_plants``, ``experiment=generalization``): the model
   of this run's plant evaluated on the test drives driven again on another plant, with the
   same ``prediction`` and ``tracking`` sections.
@@ -30,20 +30,19 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from harness import references, training_report
+from harness import training_report
 from harness.data.collect import prepare
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
+from harness.references import Reference
 from harness.tracking import track
 from learners.base import KoopmanLearner, Learner
 from learners.base import load as load_learner
 
 log = logging.getLogger(__name__)
-
-REFERENCES = ("test_episode", "double_lane_change")
 
 
 class Pipeline:
@@ -62,8 +61,7 @@ class Pipeline:
         model_path: str | None = None,
         prediction_window_steps: int = 41,
         prediction_window_s: float = 10.0,
-        tracking_references: Sequence[str] = REFERENCES,
-        double_lane_change_speed_mps: float = 80 / 3.6,
+        references: Mapping[str, Reference] | None = None,
         robustness_repeats: int = 100,
     ) -> None:
         self.data = DataConfig.from_config(data)
@@ -72,7 +70,7 @@ class Pipeline:
         for name, make in (extra_controllers or {}).items():
             if not callable(make):
                 raise ValueError(
-                    f"task.extra_controllers.{name} must be a controller config (_partial_: true)"
+                    f"task.extra_controllers.{name} must be a controller config (conf/controller/)"
                 )
             self.controllers[name] = make
         self.other_plants = dict(other_plants or {})
@@ -81,14 +79,11 @@ class Pipeline:
             raise ValueError(
                 "task.prediction_window_steps and task.prediction_window_s must be > 0"
             )
-        unknown = set(tracking_references) - set(REFERENCES)
-        if unknown:
-            raise ValueError(
-                f"task.tracking_references: unknown {sorted(unknown)}; choose from {REFERENCES}"
-            )
+        for name, reference in (references or {}).items():
+            if not isinstance(reference, Reference):
+                raise ValueError(f"task.references.{name} must be a reference config (_target_)")
         self.window_steps, self.window_s = prediction_window_steps, prediction_window_s
-        self.references = list(tracking_references)
-        self.lane_change_speed = double_lane_change_speed_mps
+        self.references = dict(references or {})
         if robustness_repeats < 1:
             raise ValueError(f"task.robustness_repeats must be >= 1 (got {robustness_repeats})")
         self.robustness_repeats = robustness_repeats
@@ -107,7 +102,7 @@ class Pipeline:
                 output_dir=output_dir,
             )
             sections["robustness"] = _one_learner(repeated, self.learner_name)
-        tracking = self._track(learner, plant, dataset.test[0], recorder, output_dir)
+        tracking = self._track(learner, plant, dataset.test, recorder, output_dir)
         if tracking is not None:
             sections["tracking"] = tracking
         if self.other_plants:
@@ -168,27 +163,26 @@ class Pipeline:
         self,
         learner: Learner,
         plant: Sedan,
-        episode: Episode,
+        episodes: Sequence[Episode],
         recorder: Recorder,
         output_dir: Path,
         prefix: str = "",
     ) -> dict[str, Any] | None:
-        """Every controller on every reference; the first controller's runs are the top level."""
+        """Every controller on every reference (each built from the test drives ``episodes``);
+        the first controller's run of the first reference is the top level."""
         if not self.controllers or not self.references:
             return None
         if not isinstance(learner, KoopmanLearner):
             return {"skipped": f"{self.learner_name} is not a lifted-linear model"}
         targets = {
-            name: (f"test_episode/{episode.name}", references.from_episode(episode))
-            if name == "test_episode"
-            else (name, references.double_lane_change(self.lane_change_speed, dt=plant.dt))
-            for name in self.references
+            name: (reference.label(name, episodes), reference.build(plant.dt, episodes))
+            for name, reference in self.references.items()
         }
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
-                controller = make_controller(learner)
+                controller = make_controller(learner, plant.dt)
                 stem = f"tracking_{controller_name}_{name}"
                 metrics, _ = track(
                     plant,
@@ -199,7 +193,6 @@ class Pipeline:
                     figure_path=output_dir / f"{stem}.png",
                     arrays_path=output_dir / f"{stem}.npz",
                 )
-                metrics["horizon"] = {"Np": controller.Np, "Nc": controller.Nc}
                 runs[label] = metrics
                 log.info(
                     "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
@@ -228,7 +221,7 @@ class Pipeline:
         directory.mkdir(parents=True, exist_ok=True)
         prefix = f"generalization/{name}/"
         result = {"prediction": self._predict(learner, episodes, recorder, directory, prefix)}
-        tracking = self._track(learner, plant, episodes[0], recorder, directory, prefix)
+        tracking = self._track(learner, plant, episodes, recorder, directory, prefix)
         if tracking is not None:
             result["tracking"] = tracking
         return result

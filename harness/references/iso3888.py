@@ -1,10 +1,8 @@
-"""Tracking references: (T, 3) physical states (vx, vy, yaw_rate), SI, one row per 10 ms.
+"""The ISO 3888 double lane change as a tracking reference (``conf/reference/``).
 
-Two kinds, as in the paper's section VI and the standard handling tests:
-
-- :func:`from_episode`: the recorded states of a held-out test episode (the paper's choice);
-- :func:`double_lane_change`: the states a car needs to drive an ISO 3888 double lane change at
-  constant speed along a smooth centreline.
+:class:`DoubleLaneChange` builds the (T, 3) physical states (vx, vy, yaw_rate), SI, one row per
+control step, that a car needs to drive an ISO 3888 double lane change at constant speed along a
+smooth centreline; the standard handling test beside the paper's held-out test drives.
 
 The lane change is specified as a path and turned into states: vx = v (constant), yaw rate =
 v·κ(s) along the path, and vy from the linear bicycle model's steady-state sideslip at that yaw
@@ -30,6 +28,7 @@ the highest passable speed): 6.7 m/s² at 50 km/h, 5.4 m/s² at 45 km/h.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,11 +64,6 @@ class BicycleParams:
             / (wheelbase * self.rear_cornering_stiffness_n_per_rad)
         )
         return self.cg_to_rear_m - lateral
-
-
-def from_episode(episode: Episode) -> np.ndarray:
-    """The recorded states of an episode, as the paper does with its test episodes."""
-    return np.array(episode.states, dtype=float)
 
 
 def lane_offset_m(standard: str, vehicle_width_m: float = 1.8) -> float:
@@ -122,6 +116,41 @@ def double_lane_change(
     yaw_rate = speed_mps * np.interp(s, arc, curvature)
     gain = (bicycle or BicycleParams()).vy_per_yaw_rate_m(speed_mps) if sideslip else 0.0
     return np.stack([np.full_like(s, speed_mps), gain * yaw_rate, yaw_rate], axis=1)
+
+
+class DoubleLaneChange:
+    """The ISO 3888 double lane change at constant ``speed_mps``; the same on every plant.
+
+    A plain class, not a dataclass: Hydra keeps built objects in a config node, which would turn
+    a dataclass back into a config.
+    """
+
+    def __init__(
+        self,
+        speed_mps: float = 80 / 3.6,
+        standard: str = "iso3888_1",
+        vehicle_width_m: float = 1.8,
+        sideslip: bool = True,
+    ) -> None:
+        if not speed_mps > 0:
+            raise ValueError(f"speed_mps must be > 0 (got {speed_mps})")
+        if standard not in _GEOMETRY:
+            raise ValueError(f"standard must be one of {sorted(_GEOMETRY)} (got {standard!r})")
+        self.speed_mps, self.standard = speed_mps, standard
+        self.vehicle_width_m, self.sideslip = vehicle_width_m, sideslip
+
+    def label(self, name: str, episodes: Sequence[Episode]) -> str:
+        """The config's name alone: the lane change does not depend on the drives."""
+        return name
+
+    def build(self, dt: float, episodes: Sequence[Episode]) -> np.ndarray:
+        return double_lane_change(
+            self.speed_mps,
+            self.standard,
+            dt=dt,
+            vehicle_width_m=self.vehicle_width_m,
+            sideslip=self.sideslip,
+        )
 
 
 def _smootherstep(x: np.ndarray, start: float, end: float) -> np.ndarray:

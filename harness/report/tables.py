@@ -1,0 +1,285 @@
+"""The paper's tables from a sweep's runs: one row per learner (and plant, controller, variant),
+numbers as mean ± std over the runs that differ only by seed.
+
+Each table is also written as a CSV by :func:`harness.report.report`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from harness.report.jobs import Run, common_overrides, variant
+
+STATES = ("vx", "vy", "yaw_rate")
+
+
+@dataclass
+class Table:
+    title: str
+    columns: list[str]
+    rows: list[list[str]] = field(default_factory=list)
+
+    def markdown(self) -> str:
+        lines = [f"### {self.title}", "", "| " + " | ".join(self.columns) + " |"]
+        lines.append("|" + "---|" * len(self.columns))
+        lines += ["| " + " | ".join(row) + " |" for row in self.rows]
+        return "\n".join(lines) + "\n"
+
+
+def _mean_std(values: Iterable[float | None]) -> str:
+    numbers = [v for v in values if v is not None and math.isfinite(v)]
+    if not numbers:
+        return "—"
+    mean = sum(numbers) / len(numbers)
+    if len(numbers) == 1:
+        return f"{mean:.4g}"
+    std = math.sqrt(sum((v - mean) ** 2 for v in numbers) / (len(numbers) - 1))
+    return f"{mean:.4g} ± {std:.2g}"
+
+
+def _get(tree: Mapping[str, Any] | None, *keys: str) -> Any:
+    for key in keys:
+        if not isinstance(tree, Mapping) or key not in tree:
+            return None
+        tree = tree[key]
+    return tree
+
+
+def _group(runs: Iterable[Run], *keys: Callable[[Run], str]) -> dict[tuple[str, ...], list[Run]]:
+    """Runs that differ only by seed share a group (mean ± std); the last key is the variant."""
+    runs = list(runs)
+    common = common_overrides(runs)
+    groups: dict[tuple[str, ...], list[Run]] = defaultdict(list)
+    for run in runs:
+        groups[(*(key(run) for key in keys), variant(run, common))].append(run)
+    return dict(sorted(groups.items()))
+
+
+def _learner(run: Run) -> str:
+    return run.learner
+
+
+def _plant(run: Run) -> str:
+    return run.plant
+
+
+def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
+    table = Table(
+        f"Prediction RMSE ({metric}; vx, vy in m/s, yaw rate in rad/s; mean ± std over jobs)",
+        ["learner", "plant", "variant", "test episode", "jobs", *STATES],
+    )
+    for (learner, plant, varied), members in _group(jobs, _learner, _plant).items():
+        episodes = sorted({e for j in members for e in (_get(j.metrics, "prediction") or {})})
+        for episode in episodes:
+            values = [_get(j.metrics, "prediction", episode, metric) for j in members]
+            present = [v for v in values if v]
+            table.rows.append(
+                [learner, plant, varied or "—", episode, str(len(present))]
+                + [_mean_std(v.get(s) for v in present) for s in STATES]
+            )
+    return table
+
+
+def _tracking_runs(
+    tracking: Mapping[str, Any], controller: str
+) -> Iterable[tuple[str, str, dict[str, Any]]]:
+    """(controller, reference, metrics) of every closed-loop run of a ``tracking`` section,
+    first controller first; older sections without ``controllers`` are ``controller``'s."""
+    by_controller = tracking.get("controllers")
+    if not by_controller:
+        references = tracking.get("references") or (
+            {tracking.get("reference", "test_episode"): tracking} if "rmse" in tracking else {}
+        )
+        by_controller = {controller: references}
+    for controller, runs in by_controller.items():
+        for label, metrics in runs.items():
+            if isinstance(metrics, Mapping) and "rmse" in metrics:
+                yield controller, label.split("/", 1)[0], metrics
+
+
+def tracking_table(jobs: list[Run]) -> Table:
+    table = Table(
+        "DE-MPC tracking RMSE on the plant (SI) and solve time of one control step (ms)",
+        [
+            "learner",
+            "controller",
+            "Np/Nc",
+            "reference",
+            "variant",
+            "jobs",
+            *STATES,
+            "solve median",
+            "solve p99",
+            "solve max",
+            "deadline misses",
+            "solver failures",
+        ],
+    )
+    common = common_overrides(jobs)
+    runs: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
+    firsts: set[str] = set()  # the references a job tracked first: the paper's, listed first
+    for job in jobs:
+        tracking = _get(job.metrics, "tracking") or {}
+        first = _first_reference(tracking)
+        for controller, reference, metrics in _tracking_runs(tracking, job.controller):
+            horizon = metrics.get("horizon") or {}
+            key = (
+                job.learner,
+                controller,
+                f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
+                reference,
+                variant(job, common) or "—",
+            )
+            runs[key].append(metrics)
+        if first is not None:
+            firsts.add(first)
+    for key, members in sorted(
+        runs.items(), key=lambda kv: (kv[0][0], kv[0][1], kv[0][3] not in firsts, kv[0][3:])
+    ):
+        table.rows.append(
+            [*key, str(len(members))]
+            + [_mean_std(_get(m, "rmse", s) for m in members) for s in STATES]
+            + [
+                _mean_std(_get(m, "solve_time_ms", q) for m in members)
+                for q in ("median", "p99", "max")
+            ]
+            + [_mean_std(m.get(k) for m in members) for k in ("deadline_misses", "solver_failures")]
+        )
+    return table
+
+
+def training_table(jobs: list[Run]) -> Table:
+    table = Table("Training", ["learner", "variant", "jobs", "fit time (s)", "train frames"])
+    for (learner, varied), members in _group(jobs, _learner).items():
+        trained = [j for j in members if _get(j.metrics, "training")]
+        if trained:
+            table.rows.append(
+                [
+                    learner,
+                    varied or "—",
+                    str(len(trained)),
+                    _mean_std(_get(j.metrics, "training", "fit_time_s") for j in trained),
+                    _mean_std(_get(j.metrics, "training", "train_frames") for j in trained),
+                ]
+            )
+    return table
+
+
+def robustness_table(jobs: list[Run]) -> Table:
+    table = Table(
+        "Random-layer robustness: RMSE over 100 predictions with the layer redrawn, mean "
+        "(spread) per job, then mean ± std over jobs",
+        ["learner", "variant", "test episode", "jobs", *STATES],
+    )
+    for (learner, varied), members in _group(jobs, _learner).items():
+        episodes = sorted({e for j in members for e in (_get(j.metrics, "robustness") or {})})
+        for episode in episodes:
+            values = [_get(j.metrics, "robustness", episode) for j in members]
+            present = [v for v in values if isinstance(v, Mapping)]
+            table.rows.append(
+                [learner, varied or "—", episode, str(len(present))]
+                + [
+                    f"{_mean_std(_get(v, 'rmse_mean', s) for v in present)} "
+                    f"({_mean_std(_get(v, 'rmse_std', s) for v in present)})"
+                    for s in STATES
+                ]
+            )
+    return table
+
+
+def _mean_prediction(section: Mapping[str, Any], state: str) -> float | None:
+    """Open-loop RMSE of one state averaged over a section's test episodes."""
+    per_episode = [_get(v, "rmse", state) for v in (section.get("prediction") or {}).values()]
+    numbers = [v for v in per_episode if v is not None]
+    return sum(numbers) / len(numbers) if numbers else None
+
+
+def _first_reference(tracking: Mapping[str, Any]) -> str | None:
+    """The reference a job tracked first (its top-level ``tracking`` keys), without episode."""
+    label = tracking.get("reference")
+    return label.split("/", 1)[0] if isinstance(label, str) else None
+
+
+def _first_controller_run(section: Mapping[str, Any], reference: str) -> dict[str, Any] | None:
+    """The first controller's run of ``reference`` (a test drive matches by its config name)."""
+    runs = _tracking_runs(section.get("tracking") or {}, "")
+    return next((metrics for _, name, metrics in runs if name == reference), None)
+
+
+def generalization_table(jobs: list[Run]) -> Table:
+    """Each model on its own plant and on the others (``experiment=generalization``).
+
+    The test drives are driven again on each plant (the driver adapts to its grip), so a
+    test-drive reference compares a model with the drives each plant produces; a reference built
+    from no drive (the double lane change) is the same on every plant.
+    """
+    evaluated = [j for j in jobs if _get(j.metrics, "generalization")]
+    groups = _group(evaluated, _learner, _plant)
+    sections = [
+        section
+        for members in groups.values()
+        for j in members
+        for section in [j.metrics or {}, *(_get(j.metrics, "generalization") or {}).values()]
+    ]
+    references = list(
+        dict.fromkeys(
+            name for s in sections for _, name, _ in _tracking_runs(s.get("tracking") or {}, "")
+        )
+    )
+    table = Table(
+        "Generalization: trained on one plant, evaluated on others — open-loop prediction RMSE "
+        "(mean over the test drives, driven again on each plant) and the first controller's "
+        "tracking RMSE of every reference (a test drive is each plant's own first one; SI)",
+        ["learner", "trained on", "evaluated on", "variant", "jobs"]
+        + [f"prediction {s}" for s in STATES]
+        + [f"tracking {reference} {s}" for reference in references for s in STATES],
+    )
+    for (learner, plant, varied), members in groups.items():
+        targets = {plant: [(j.metrics or {}) for j in members]}
+        for job in members:
+            for other, section in (_get(job.metrics, "generalization") or {}).items():
+                targets.setdefault(other, []).append(section)
+        for target, sections in targets.items():
+            runs = {
+                reference: [_first_controller_run(s, reference) for s in sections]
+                for reference in references
+            }
+            table.rows.append(
+                [learner, plant, target, varied or "—", str(len(sections))]
+                + [_mean_std(_mean_prediction(s, state) for s in sections) for state in STATES]
+                + [
+                    _mean_std(_get(run, "rmse", state) for run in runs[reference])
+                    for reference in references
+                    for state in STATES
+                ]
+            )
+    return table
+
+
+def failures_table(jobs: list[Run]) -> Table:
+    table = Table("Jobs that did not finish", ["job", "reason"])
+    for job in jobs:
+        if job.error:
+            table.rows.append([job.name, job.error])
+        elif job.metrics is None:
+            table.rows.append([job.name, "no metrics.json (still running, killed, or crashed)"])
+    return table
+
+
+def tables(runs: list[Run]) -> dict[str, Table]:
+    """Every table of a sweep by its CSV name; the finished runs' numbers, every run's failure."""
+    finished = [r for r in runs if r.metrics is not None and r.error is None]
+    return {
+        "prediction": prediction_table(finished),
+        "prediction_window_41": prediction_table(finished, "rmse_window_41"),
+        "prediction_window_10s": prediction_table(finished, "rmse_window_10s"),
+        "tracking": tracking_table(finished),
+        "robustness": robustness_table(finished),
+        "generalization": generalization_table(finished),
+        "training": training_table(finished),
+        "failures": failures_table(runs),
+    }

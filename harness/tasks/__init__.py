@@ -1,0 +1,1 @@
+"""The jobs ``python -m harness task=...`` runs, one module per ``conf/task/`` config."""

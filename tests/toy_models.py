@@ -1,0 +1,112 @@
+"""An exact lifted-linear system and a plant made of it, so a controller meets its own model.
+
+With the plant equal to the controller's model, tracking errors are the controller's alone: a
+feasible reference must be tracked almost exactly, and the QP's answers can be checked against
+closed forms.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from controllers.lifted_linear import LiftedLinearModel
+from harness.data.episode import MinMaxNormalizer
+from harness.interfaces import STATE_NAMES
+
+
+def constant_feature(x_norm: np.ndarray) -> np.ndarray:
+    """(..., 1): the constant observable, enough for an affine (linear in SI units) system."""
+    return np.ones((*np.shape(x_norm)[:-1], 1))
+
+
+def toy_linear_model() -> LiftedLinearModel:
+    """An exact lifted-linear system, z = [x_norm; 1], at rest at (20 m/s, 0, 0) under u = 0.
+
+    Pedal drives vx, steering drives the coupled (vy, yaw_rate) pair; stable, well damped.
+    """
+    normalizer = MinMaxNormalizer(
+        np.array([0.0, -2.0, -1.0]),
+        np.array([40.0, 2.0, 1.0]),
+        np.array([-450.0, -1.0]),
+        np.array([450.0, 1.0]),
+    )
+    a = np.array([[0.995, 0.0, 0.0], [0.0, 0.90, 0.04], [0.0, 0.03, 0.93]])
+    b = np.array([[0.0, 0.004], [0.02, 0.0], [0.03, 0.0]])
+    x_rest, v_rest = np.full(3, 0.5), np.full(2, 0.5)
+    A = np.eye(4)  # noqa: N806
+    A[:3, :3], A[:3, 3] = a, x_rest - a @ x_rest - b @ v_rest
+    B = np.vstack([b, np.zeros((1, 2))])  # noqa: N806
+    return LiftedLinearModel(A, B, normalizer, constant_feature)
+
+
+def feasible_reference(model: LiftedLinearModel, steps: int = 600) -> np.ndarray:
+    """(steps, 3) states the model itself reaches from (20 m/s, 0, 0) under slow inputs."""
+    plant = ModelPlant(model, x0=np.array([20.0, 0.0, 0.0]))
+    t = np.arange(steps) * plant.dt
+    inputs = np.stack([60 * np.sin(2 * np.pi * 0.4 * t), 0.05 * np.sin(2 * np.pi * 0.2 * t)], 1)
+    states = [plant.reset()]
+    states += [plant.step(u) for u in inputs[:-1]]
+    return np.array(states)
+
+
+class ModelPlant:
+    """A :class:`~harness.interfaces.Plant` whose dynamics are a lifted-linear model.
+
+    Only consistent when the lift is closed under the dynamics (e.g. ``constant_feature``): the
+    state is x = normalizer⁻¹(C z) and the next z is A z + B v.
+    """
+
+    dt = 0.01
+
+    def __init__(self, model: LiftedLinearModel, x0: np.ndarray | None = None) -> None:
+        self.model = model
+        self.x0 = np.zeros(3) if x0 is None else np.asarray(x0, dtype=float)
+        self.reset()
+
+    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray:
+        del seed  # deterministic: nothing to seed
+        x = self.x0.copy()
+        if speed_mps:
+            x[0] = speed_mps
+        self._z = self.model.lift(x)
+        self._pose = np.zeros(3)
+        return self._state()
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        vx, vy, yaw_rate = self._state()
+        self._z = self.model.A_ @ self._z + self.model.B_ @ self.model.normalizer_.inputs(u)
+        # Pose (X, Y, yaw) by planar kinematics, for display only.
+        yaw = self._pose[2]
+        self._pose = self._pose + self.dt * np.array(
+            [vx * np.cos(yaw) - vy * np.sin(yaw), vx * np.sin(yaw) + vy * np.cos(yaw), yaw_rate]
+        )
+        return self._state()
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self._pose.copy()
+
+    @property
+    def fingerprint(self) -> dict[str, Any]:
+        normalizer = self.model.normalizer_
+        return {
+            "plant": "model_plant",
+            "dt": self.dt,
+            "x0": dict(zip(STATE_NAMES, self.x0.tolist(), strict=True)),
+            "A": self.model.A_.tolist(),
+            "B": self.model.B_.tolist(),
+            "normalizer": [
+                np.asarray(limit).tolist()
+                for limit in (
+                    normalizer.state_min,
+                    normalizer.state_max,
+                    normalizer.input_min,
+                    normalizer.input_max,
+                )
+            ],
+        }
+
+    def _state(self) -> np.ndarray:
+        return self.model.normalizer_.states_inverse(self.model.C_ @ self._z)
