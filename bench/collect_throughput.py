@@ -15,15 +15,19 @@ import time
 from hydra import compose, initialize_config_dir
 
 from bench.machine import describe
+from harness.config import as_object, register_configs
+from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, collect, load
 from harness.paths import CONF_DIR
-from harness.plant import SedanParams
+from harness.plant import Sedan
 
 
 def paper_config(root: str, workers: int, episodes: int | None) -> DataConfig:
+    register_configs()
+    overrides = ["data=paper", f"data.root={root}", f"data.workers={workers}"]
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["data=paper"])
-    data = DataConfig.from_config(dict(cfg.data) | {"root": root, "workers": workers})
+        cfg = compose(config_name="config", overrides=overrides)
+    data = as_object(cfg.data, DataConfig)
     if episodes is not None and episodes != data.episodes:
         split = {"train": episodes - 2, "validation": 1, "test": 1}
         data = dataclasses.replace(data, episodes=episodes, split=split)
@@ -32,7 +36,8 @@ def paper_config(root: str, workers: int, episodes: int | None) -> DataConfig:
 
 def timed_collect(data: DataConfig) -> tuple[int, float]:
     start = time.perf_counter()
-    directory = collect(SedanParams(), data, progress=False)
+    plant = Sedan()
+    directory = collect(plant, data, DriverKnowledge.of(plant.params), progress=False)
     wall = time.perf_counter() - start
     return sum(len(e) for e in load(directory).episodes()), wall
 
@@ -55,8 +60,7 @@ def main() -> None:
     for name, episodes, frames, wall in rows:
         rate = frames / wall
         print(
-            f"| {name} | {episodes} | {frames:,} | {wall:.1f} | {rate:,.0f} "
-            f"| {rate / base:.2f}x |"
+            f"| {name} | {episodes} | {frames:,} | {wall:.1f} | {rate:,.0f} | {rate / base:.2f}x |"
         )
 
 

@@ -29,6 +29,7 @@ from bench.machine import describe
 from controllers import DEMPC, CondensedQP, DEMPCConfig
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.data import Episode
+from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
 from harness.plant import Sedan
 from harness.recorder import Recorder
@@ -44,7 +45,7 @@ def representative_model(episodes: int = 6, steps: int = 3000) -> tuple[LiftedLi
     """N = 13 least-squares Koopman model on the driver's data; one more drive held out."""
     plant, data, drives = Sedan(), DataConfig(), []
     for index in range(episodes + 1):
-        d = drive_episode(plant.params, data, index, steps)
+        d = drive_episode(plant, data, DriverKnowledge.of(plant.params), index, steps)
         drives.append(Episode(f"drive_{index}", d["time_s"], d["states"], d["inputs"], d["poses"]))
     return fit_lifted_linear(drives[:episodes]), drives[episodes]
 

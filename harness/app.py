@@ -15,6 +15,7 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from harness.config import register_configs, validate
 from harness.metrics import update_metrics, write_json_atomic
 from harness.paths import CONF_DIR
 
@@ -34,11 +35,13 @@ def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
 
 
 OmegaConf.register_new_resolver("job_dirname", job_dirname, replace=True)
+register_configs()  # before @hydra.main composes: the YAML files extend these schemas
 
 
 def run(cfg: DictConfig, output_dir: Path) -> dict:
     """Build plant, recorder and task from ``cfg``; run the task; return its metrics sections."""
     task_name = HydraConfig.get().runtime.choices["task"]
+    validate(cfg)  # every range check of every block, before anything is built or run
     plant = instantiate(cfg.plant)
     make_recorder = instantiate(cfg.recorder)
     task = instantiate(cfg.task)

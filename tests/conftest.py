@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
+from harness.config import register_configs
 from harness.paths import REPO_ROOT
-from harness.plant import Sedan
+from harness.plant import Sedan, SedanParams
+from harness.plant.params import TireParams
 from harness.recorder import Recorder
 from harness.tasks.characterize import Characterize
 
@@ -16,6 +18,8 @@ from harness.tasks.characterize import Characterize
 os.environ["PYTHONPATH"] = os.pathsep.join(
     filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])
 )
+
+register_configs()  # tests compose with hydra.compose: the YAML files extend these schemas
 
 
 @pytest.fixture(scope="session")
@@ -26,8 +30,12 @@ def sedan() -> Sedan:
 @pytest.fixture(scope="session")
 def characterized(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
     """Characterization metrics of the dry and the wet sedan (about 3 s each)."""
+    plants = {
+        "sedan": SedanParams(),
+        "sedan_wet": SedanParams(name="sedan_wet", tire=TireParams(road_friction=0.5)),
+    }
     results = {}
-    for name, config in {"sedan": {}, "sedan_wet": {"tire": {"road_friction": 0.5}}}.items():
+    for name, params in plants.items():
         out = Path(tmp_path_factory.mktemp(name))
-        results[name] = Characterize()(Sedan(name=name, **config), Recorder(), out)["characterize"]
+        results[name] = Characterize()(Sedan(params), Recorder(), out)["characterize"]
     return results

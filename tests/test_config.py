@@ -1,16 +1,31 @@
-"""Every config composes and builds; a wrong value is refused in one line that names its key."""
+"""Every config composes and builds; a wrong value is refused in one line that names its key.
+
+Keys and types are checked by the schema when the config is composed (harness/config.py);
+ranges by the dataclasses' ``__post_init__``, all at once by ``validate`` before a run starts.
+"""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
+from harness.config import validate
+from harness.data.store import DataConfig
 from harness.paths import CONF_DIR
 from harness.plant import Sedan, SedanParams
+from harness.plant.params import ChassisParams, TireParams
 
-PLANTS = sorted(p.stem for p in (CONF_DIR / "plant").glob("*.yaml"))
+SCHEMAS = {"plant": SedanParams, "data": DataConfig}
+CONFIGS = [
+    (group, path.stem) for group in SCHEMAS for path in sorted((CONF_DIR / group).glob("*.yaml"))
+]
+PLANTS = [name for group, name in CONFIGS if group == "plant"]
 
 
 def compose_config(*overrides: str):
@@ -20,6 +35,16 @@ def compose_config(*overrides: str):
 
 def test_the_three_plants_exist() -> None:
     assert {"sedan", "sedan_wet", "sedan_loaded"} <= set(PLANTS)
+
+
+@pytest.mark.parametrize(("group", "name"), CONFIGS, ids=[f"{g}/{n}" for g, n in CONFIGS])
+def test_every_plant_and_data_config_composes_and_converts_to_its_schema(
+    group: str, name: str
+) -> None:
+    cfg = compose_config(f"{group}={name}")
+    validate(cfg)
+    block = OmegaConf.to_object(cfg[group])
+    assert isinstance(block, SCHEMAS[group]) and block.name == name
 
 
 @pytest.mark.parametrize("name", PLANTS)
@@ -36,38 +61,73 @@ def test_every_plant_composes_loads_resets_and_steps(name: str) -> None:
     assert abs(states[-1, 0]) < 0.05  # ... and the brake stopped it
 
 
+def test_the_plant_config_builds_a_sedan_on_real_parameter_dataclasses() -> None:
+    plant = instantiate(compose_config("plant=sedan_loaded").plant)
+    params = plant.params
+    assert type(params) is SedanParams  # not the schema with Hydra's keys
+    assert isinstance(params.tire, TireParams) and isinstance(params.chassis, ChassisParams)
+    assert params.chassis.payload_position_m == (-0.3, 0.0, 0.1)  # a tuple, as declared
+    assert dataclasses.replace(params, name="sedan") != SedanParams()  # the payload differs
+
+
 def test_plant_variants_differ_only_where_configured() -> None:
     dry, wet, loaded = (
         instantiate(compose_config(f"plant={n}").plant)
         for n in ("sedan", "sedan_wet", "sedan_loaded")
     )
     assert wet.params.tire.road_friction == 0.5 and dry.params.tire.road_friction == 0.9
+    assert dataclasses.replace(wet.params.tire, road_friction=0.9) == dry.params.tire
     assert wet.params.chassis == dry.params.chassis
     assert loaded.model.body_subtreemass[1] == pytest.approx(dry.model.body_subtreemass[1] + 300)
-
-
-def test_yaml_defaults_match_the_dataclass_defaults() -> None:
-    """conf/plant/sedan.yaml lists every parameter; it must not drift from the code."""
-    from_yaml = instantiate(compose_config("plant=sedan").plant).params
-    assert from_yaml == SedanParams()
 
 
 @pytest.mark.parametrize(
     ("override", "key"),
     [
-        ("plant.tire.road_friction=0", "plant.tire.road_friction"),
-        ("plant.chassis.sprung_mass_kg=-5", "plant.chassis.sprung_mass_kg"),
-        ("plant.physics_timestep_s=0.003", "plant.control_period_s"),
-        ("plant.brakes.front_gain_nm_per_mpa=-1", "plant.brakes.front_gain_nm_per_mpa"),
-        ("+plant.tire.grip=1", "plant.tire.grip"),
+        ("plant.tire.road_friction=abc", "plant.tire.road_friction"),  # wrong type
+        ("plant.tire.grip=1", "plant.tire.grip"),  # unknown key
+        ("data.driver.grip=1", "data.driver.grip"),
+        ("data.episodes=many", "data.episodes"),
+        ("data.split.train=one", "data.split.train"),
     ],
 )
-def test_a_wrong_plant_value_names_its_key(override: str, key: str) -> None:
-    with pytest.raises(Exception) as info:
-        instantiate(compose_config(override).plant)
-    error = info.value.__cause__ or info.value
-    assert isinstance(error, ValueError)
-    assert key in str(error) and "\n" not in str(error)
+def test_a_wrong_type_or_an_unknown_key_fails_at_composition_naming_the_key(
+    override: str, key: str
+) -> None:
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_config(override)
+    assert key in str(info.value).splitlines()[0]
+    assert info.value.__cause__.full_key == key  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("plant.tire.road_friction=-1", "plant.tire.road_friction must be > 0 (got -1)"),
+        ("plant.tire.road_friction=inf", "plant.tire.road_friction must be finite (got inf)"),
+        ("plant.chassis.sprung_mass_kg=-5", "plant.chassis.sprung_mass_kg must be > 0"),
+        ("plant.physics_timestep_s=0.003", "plant.control_period_s (0.01) must be a whole"),
+        ("plant.brakes.front_gain_nm_per_mpa=-1", "plant.brakes.front_gain_nm_per_mpa must be"),
+        ("plant.chassis.payload_position_m=[1,2]", "plant.chassis.payload_position_m must be"),
+        ("+plant.tire.grip=1", "unknown key plant.tire.grip; known keys: road_friction,"),
+        ("data.split.train=2", "data.split counts sum to 6, not data.episodes (12)"),
+        ("data.min_steps=5000", "data.min_steps (5000) must be >= 10 and <= data.max_steps"),
+        ("data.driver.lateral_weights=[1,2]", "data.driver.lateral_weights needs 6 weights"),
+        ("data.driver.steer_rate_deg_per_s=-1", "data.driver.steer_rate_deg_per_s must be"),
+        ("experiment=generalization", None),  # the other plants are checked as well ...
+    ],
+)
+def test_an_out_of_range_value_fails_validation_in_one_line_naming_the_key(
+    override: str, message: str | None
+) -> None:
+    cfg = compose_config(override)
+    if message is None:
+        validate(cfg)
+        cfg.task.other_plants.sedan_wet.tire.road_friction = -1.0
+        message = "plant.tire.road_friction must be > 0"  # ... and refused as well
+    with pytest.raises(ValueError) as info:
+        validate(cfg)
+    assert message in str(info.value) and "\n" not in str(info.value)
 
 
 def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_horizons() -> None:

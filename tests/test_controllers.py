@@ -17,6 +17,7 @@ from hydra.utils import instantiate
 from controllers import DEMPC, CondensedQP, DEMPCConfig, QPSolution, check_controller_config
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.data import Episode
+from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
 from harness.interfaces import Controller, LiftedModel, Plant, StepInfo
 from harness.paths import CONF_DIR
@@ -368,7 +369,7 @@ def quick_model_and_episode() -> tuple[LiftedLinearModel, Episode]:
     plant = Sedan()
     episodes = []
     for index in range(4):
-        drive = drive_episode(plant.params, data, index, 1500)
+        drive = drive_episode(plant, data, DriverKnowledge.of(plant.params), index, 1500)
         episodes.append(
             Episode(f"e{index}", drive["time_s"], drive["states"], drive["inputs"], drive["poses"])
         )

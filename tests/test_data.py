@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import json
+import pickle
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from harness.data.driver import DriverConfig, SyntheticDriver
+from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
 from harness.data.store import DataConfig, DatasetError, collect, content_key, load
+from harness.interfaces import Plant
 from harness.plant import Sedan, SedanParams
+from harness.plant.params import TireParams
 from harness.rollout import simulate
+
+DRY = DriverKnowledge.of(SedanParams())  # what the driver of the default sedan knows
 
 
 def tiny(root: Path, **changes) -> DataConfig:
@@ -100,23 +105,27 @@ def test_bad_data_values_name_their_key(tmp_path: Path) -> None:
         tiny(tmp_path, min_steps=500, max_steps=100)
     with pytest.raises(ValueError, match=r"data\.driver\.steer_rate_deg_per_s"):
         DriverConfig(steer_rate_deg_per_s=-1.0)
-    with pytest.raises(ValueError, match=r"data\.driver\.grip"):
-        DataConfig.from_config({"driver": {"grip": 1}})
+    with pytest.raises(ValueError, match=r"data\.driver\.segment_duration_s"):
+        DriverConfig(segment_duration_s=(1.0, 2.0, 3.0))
 
 
 @pytest.fixture(scope="module")
-def stored(tmp_path_factory: pytest.TempPathFactory) -> tuple[DataConfig, Path]:
+def stored(
+    tmp_path_factory: pytest.TempPathFactory, sedan_module: Sedan
+) -> tuple[DataConfig, Path]:
     data = tiny(tmp_path_factory.mktemp("datasets"))
-    return data, collect(SedanParams(), data, progress=False)
+    return data, collect(sedan_module, data, DRY, progress=False)
 
 
-def test_split_is_disjoint_by_episode_and_reproducible(stored, tmp_path: Path) -> None:
+def test_split_is_disjoint_by_episode_and_reproducible(
+    stored, tmp_path: Path, sedan_module: Sedan
+) -> None:
     _data, directory = stored
     dataset = load(directory)
     names = [e.name for e in dataset.train + dataset.validation + dataset.test]
     assert len(names) == len(set(names)) == 4
     assert (len(dataset.train), len(dataset.validation), len(dataset.test)) == (2, 1, 1)
-    again = load(collect(SedanParams(), tiny(tmp_path), progress=False))
+    again = load(collect(sedan_module, tiny(tmp_path), DRY, progress=False))
     assert [e.name for e in again.test] == [e.name for e in dataset.test]
     for a, b in zip(again.episodes(), dataset.episodes(), strict=True):
         np.testing.assert_array_equal(a.states, b.states)
@@ -138,19 +147,56 @@ def test_normalizer_is_fitted_on_train_only_and_round_trips(stored) -> None:
     )
 
 
-def test_same_config_reuses_and_a_changed_one_does_not(stored) -> None:
+def test_same_config_reuses_and_a_changed_one_does_not(stored, sedan_module: Sedan) -> None:
     data, directory = stored
     before = (directory / "manifest.json").stat().st_mtime_ns
-    assert collect(SedanParams(), data, progress=False) == directory
+    assert collect(sedan_module, data, DRY, progress=False) == directory
     assert (directory / "manifest.json").stat().st_mtime_ns == before
-    wet = SedanParams.from_config({"tire": {"road_friction": 0.5}})
-    assert content_key(wet, data) != content_key(SedanParams(), data)
-    assert content_key(SedanParams(), tiny(Path(data.root), seed=1)) != directory.name
+    dry = sedan_module.fingerprint
+    assert content_key(dry, data, DRY) == directory.name
+    wet = Sedan(SedanParams(tire=TireParams(road_friction=0.5))).fingerprint
+    assert content_key(wet, data, DRY) != directory.name  # another plant
+    assert content_key(dry, data, DriverKnowledge(0.5, 16.0)) != directory.name  # driver
+    assert content_key(dry, tiny(Path(data.root), seed=1), DRY) != directory.name  # data
     # Where and how fast it is collected does not change the data.
-    assert content_key(SedanParams(), tiny(Path("/elsewhere"), workers=2)) == directory.name
+    assert content_key(dry, tiny(Path("/elsewhere"), workers=2), DRY) == directory.name
 
 
-def test_a_truncated_episode_is_detected_and_never_used(stored, tmp_path: Path) -> None:
+def test_the_sedan_is_a_plant_whose_fingerprint_names_what_moves_it(sedan_module: Sedan) -> None:
+    fingerprint = sedan_module.fingerprint
+    assert isinstance(sedan_module, Plant)
+    assert json.loads(json.dumps(fingerprint))["params"]["tire"]["road_friction"] == 0.9
+    assert set(fingerprint["sources"]) == {"vehicle_forces.c", "sedan.xml"}
+    assert Sedan(SedanParams(name="x")).fingerprint != fingerprint
+    # A worker process gets the plant by pickling: rebuilt from its parameters, at rest.
+    sedan_module.step((0.0, 0.2))
+    copy = pickle.loads(pickle.dumps(sedan_module))
+    assert copy.fingerprint == fingerprint
+    inputs = [(30.0, 0.2)] * 50
+    sedan_module.reset()
+    copy.reset()
+    np.testing.assert_array_equal(
+        [sedan_module.step(u) for u in inputs], [copy.step(u) for u in inputs]
+    )
+
+
+def test_worker_processes_store_the_same_bytes_as_one_in_process_worker(
+    stored, tmp_path: Path
+) -> None:
+    _data, directory = stored
+    parallel = collect(Sedan(), tiny(tmp_path, workers=2), DRY, progress=False)
+    assert parallel.name == directory.name
+
+    def checksums(path: Path) -> dict[str, str]:
+        episodes = json.loads((path / "manifest.json").read_text())["episodes"]
+        return {name: entry["sha256"] for name, entry in episodes.items()}
+
+    assert checksums(parallel) == checksums(directory)
+
+
+def test_a_truncated_episode_is_detected_and_never_used(
+    stored, tmp_path: Path, sedan_module: Sedan
+) -> None:
     _data, directory = stored
     copy = tmp_path / directory.name
     copy.mkdir()
@@ -162,11 +208,11 @@ def test_a_truncated_episode_is_detected_and_never_used(stored, tmp_path: Path) 
         load(copy)
     assert "\n" not in str(info.value)
     with pytest.raises(DatasetError, match="checksum"):
-        collect(SedanParams(), tiny(tmp_path), progress=False)
+        collect(sedan_module, tiny(tmp_path), DRY, progress=False)
 
 
 def test_interrupted_collection_resumes_without_redoing_finished_episodes(
-    stored, tmp_path: Path
+    stored, tmp_path: Path, sedan_module: Sedan
 ) -> None:
     _data, directory = stored
     resumed = tiny(tmp_path)
@@ -182,7 +228,7 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     for name in kept:
         (target / f"{name}.npz").write_bytes((directory / f"{name}.npz").read_bytes())
     stamps = {name: (target / f"{name}.npz").stat().st_mtime_ns for name in kept}
-    assert collect(SedanParams(), resumed, progress=False) == target
+    assert collect(sedan_module, resumed, DRY, progress=False) == target
     assert {n: (target / f"{n}.npz").stat().st_mtime_ns for n in kept} == stamps
     original, finished = load(directory), load(target)
     assert finished.manifest["split"] == original.manifest["split"]

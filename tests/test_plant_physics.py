@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.plant import Sedan
+from harness.plant import Sedan, SedanParams
+from harness.plant.params import TireParams
 from harness.rollout import SpeedHold, simulate
 
 G = 9.81
@@ -60,7 +61,7 @@ def test_throttle_range_launches_the_car_to_highway_speed(characterized: dict) -
 
 @pytest.mark.parametrize("mu", [0.9, 0.5])
 def test_lateral_acceleration_never_exceeds_friction_in_a_violent_slalom(mu: float) -> None:
-    plant = Sedan(tire={"road_friction": mu})
+    plant = Sedan(SedanParams(tire=TireParams(road_friction=mu)))
     hold = SpeedHold(25.0, plant.dt)
     run = simulate(
         plant,

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from harness.data import coverage
+from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, collect_counted, load
 from harness.plant import Sedan
 from harness.recorder import Recorder
@@ -15,7 +16,7 @@ def prepare(
     plant: Sedan, data: DataConfig, recorder: Recorder, output_dir: Path
 ) -> tuple[Dataset, dict]:
     """Collect or reuse; write the coverage figure; record every episode; return the summary."""
-    directory, collected = collect_counted(plant.params, data)
+    directory, collected = collect_counted(plant, data, DriverKnowledge.of(plant.params))
     dataset = load(directory)
     splits = {"train": dataset.train, "validation": dataset.validation, "test": dataset.test}
     coverage.plot(splits, plant.params.tire.road_friction, output_dir / "data_coverage.png")

@@ -17,6 +17,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from harness.plant.params import SedanParams
 from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 
 G = 9.81
@@ -25,8 +26,26 @@ LONGITUDINAL_MANOEUVRES = ("cruise", "coast", "brake")
 
 
 @dataclass(frozen=True)
+class DriverKnowledge:
+    """What the driver knows of the car before driving it, as a person would.
+
+    The road's peak friction sets how hard corners are taken; the steering ratio turns an
+    intended road-wheel angle into a steering-wheel angle. A plant-specific fact the caller
+    reads from its plant; the data store hashes it into the dataset key.
+    """
+
+    road_friction: float
+    steering_ratio: float
+
+    @classmethod
+    def of(cls, params: SedanParams) -> DriverKnowledge:
+        """What a driver of this sedan variant knows (its road's grip, its steering ratio)."""
+        return cls(params.tire.road_friction, params.steering.steering_ratio)
+
+
+@dataclass
 class DriverConfig:
-    """How the driver drives (``data.driver`` in ``conf/data/*.yaml``)."""
+    """How the driver drives (``data.driver`` in ``conf/data/*.yaml``; the schema of that block)."""
 
     max_speed_mps: float = 33.0
     # Scales how hard corners, holds and slaloms are taken at speed (1 = up to the limit).
@@ -53,6 +72,9 @@ class DriverConfig:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
+            if isinstance(value, list):  # the schema hands sequences over as lists
+                value = tuple(value)
+                setattr(self, f.name, value)
             values = value if isinstance(value, tuple) else (value,)
             if any(not math.isfinite(v) or v < 0 for v in values):
                 raise ValueError(f"data.driver.{f.name} must be finite and >= 0 (got {value})")
@@ -61,8 +83,8 @@ class DriverConfig:
             if len(weights) != count or sum(weights) <= 0:
                 raise ValueError(f"data.driver.{name} needs {count} weights with a positive sum")
         for name in ("segment_duration_s", "corner_grip_fraction", "slalom_frequency_hz"):
-            low, high = getattr(self, name)
-            if not 0 < low <= high:
+            bounds = getattr(self, name)
+            if len(bounds) != 2 or not 0 < bounds[0] <= bounds[1]:
                 raise ValueError(f"data.driver.{name} must be [low, high] with 0 < low <= high")
         if not self.max_speed_mps > 3:
             raise ValueError(f"data.driver.max_speed_mps must be > 3 (got {self.max_speed_mps})")

@@ -4,14 +4,18 @@ On-disk format (one directory per dataset, ``<root>/<key>/``):
 
 - ``episode_0000.npz`` ... : arrays ``time_s (T,)``, ``states (T,3)``, ``inputs (T,2)``,
   ``poses (T,3)`` in the plant's units (SI; steering in degrees; pedal as in the plant).
-- ``manifest.json``: format version, content key, the data and plant configuration, package
-  versions, per episode its file, SHA-256, number of steps and whether the car spun; once
-  complete also the split (episode names per train / validation / test) and the min-max
-  normalizer fitted on the training episodes.
+- ``manifest.json``: format version, content key, the data configuration, the plant's
+  fingerprint, what the driver knew of the car, package versions, per episode its file,
+  SHA-256, number of steps and whether the car spun; once complete also the split (episode
+  names per train / validation / test) and the min-max normalizer fitted on the training
+  episodes.
 
-The key is a hash of everything that determines the data: the plant parameters, the data
-config (episodes, lengths, driver, seed), the sources of the plant and the driver, and the
-MuJoCo version. The same configuration reuses the stored dataset; any change gives a new key.
+The key is a hash of everything that determines the data: the plant's fingerprint (for the
+sedan its parameters, the sources of its tyre callback and MJCF, the MuJoCo version), the data
+config (episodes, lengths, driver, seed), what the driver knows of the car and the driver's
+source. The same configuration reuses the stored dataset; any change gives a new key. The store
+knows plants only through :class:`harness.interfaces.Plant`; worker processes get the plant by
+pickling (a ``Sedan`` pickles as its parameters and is rebuilt there).
 Every file is written atomically; an interrupted collection resumes with the episodes that are
 missing; a file whose checksum does not match is reported and never used.
 """
@@ -34,15 +38,12 @@ from multiprocessing import get_context, get_start_method
 from pathlib import Path
 from typing import Any
 
-import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from harness.data.driver import DriverConfig, SyntheticDriver
+from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
 from harness.data.episode import Episode, MinMaxNormalizer
-from harness.paths import MJCF_DIR
-from harness.plant import Sedan, SedanParams
-from harness.plant.native import SOURCE as CALLBACK_SOURCE
+from harness.interfaces import Plant
 from harness.plant.native import cache_dir
 
 FORMAT_VERSION = 1
@@ -54,22 +55,22 @@ class DatasetError(ValueError):
     """A stored dataset cannot be used as it is; the message says what to do."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class DataConfig:
-    """What to collect (``conf/data/*.yaml``); ``root`` and ``workers`` do not change the data."""
+    """What to collect (``conf/data/*.yaml``, whose schema this is); ``root``, ``workers`` and
+    ``record_every`` do not change the data."""
 
     name: str = "default"
     episodes: int = 12
+    # Episode lengths are log-uniform in [min_steps, max_steps] control periods.
     min_steps: int = 2000
     max_steps: int = 4000
-    split: Mapping[str, int] = field(
-        default_factory=lambda: {"train": 8, "validation": 2, "test": 2}
-    )
+    split: dict[str, int] = field(default_factory=lambda: {"train": 8, "validation": 2, "test": 2})
     seed: int = 0
     driver: DriverConfig = field(default_factory=DriverConfig)
-    root: str | None = None
-    workers: int = 2
-    record_every: int = 1
+    root: str | None = None  # None: $KOOPMAN_HARNESS_CACHE/datasets (~/.cache/koopman-harness)
+    workers: int = 2  # processes
+    record_every: int = 1  # decimation of the recording only
 
     def __post_init__(self) -> None:
         if self.episodes < 3:
@@ -90,24 +91,6 @@ class DataConfig:
             )
         if self.workers < 1 or self.record_every < 1:
             raise ValueError("data.workers and data.record_every must be >= 1")
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> DataConfig:
-        values = {k: v for k, v in dict(config).items() if not k.startswith("_")}
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown key data.{sorted(unknown)[0]}; known keys: {sorted(known)}")
-        driver = dict(values.pop("driver", {}) or {})
-        driver_known = {f.name for f in dataclasses.fields(DriverConfig)}
-        if set(driver) - driver_known:
-            raise ValueError(f"unknown key data.driver.{sorted(set(driver) - driver_known)[0]}")
-        driver = {
-            k: tuple(v) if isinstance(v, Sequence) and not isinstance(v, str) else v
-            for k, v in driver.items()
-        }
-        split = dict(values.pop("split", {"train": 8, "validation": 2, "test": 2}))
-        return cls(driver=DriverConfig(**driver), split=split, **values)
 
     def content(self) -> dict[str, Any]:
         """The fields that determine the data (everything but where and how fast)."""
@@ -161,17 +144,16 @@ def _versions() -> dict[str, str]:
     return versions
 
 
-def content_key(plant: SedanParams, data: DataConfig) -> str:
-    """Hash of everything that determines the episodes' contents."""
-    sources = hashlib.sha256()
-    for source in (CALLBACK_SOURCE, _DRIVER_SOURCE, MJCF_DIR / "sedan.xml"):
-        sources.update(source.read_bytes())
+def content_key(
+    fingerprint: Mapping[str, Any], data: DataConfig, knowledge: DriverKnowledge
+) -> str:
+    """Hash of everything that determines the episodes' contents (``fingerprint``: the plant's)."""
     identity = {
         "format": FORMAT_VERSION,
-        "plant": dataclasses.asdict(plant),
+        "plant": fingerprint,
         "data": data.content(),
-        "sources": sources.hexdigest(),
-        "mujoco": mujoco.__version__,
+        "driver_knowledge": dataclasses.asdict(knowledge),
+        "driver_source": hashlib.sha256(_DRIVER_SOURCE.read_bytes()).hexdigest(),
     }
     return hashlib.sha256(json.dumps(identity, sort_keys=True, default=list).encode()).hexdigest()[
         :16
@@ -209,24 +191,16 @@ def _episode_seed(data: DataConfig, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([data.seed, 2, index]))
 
 
-_worker_plant: Sedan | None = None
-
-
 def drive_episode(
-    plant_params: SedanParams, data: DataConfig, index: int, steps: int
+    plant: Plant, data: DataConfig, knowledge: DriverKnowledge, index: int, steps: int
 ) -> dict[str, np.ndarray | bool]:
     """One episode from rest, driven by the synthetic driver; stops early if the car spins."""
-    global _worker_plant
-    if _worker_plant is None or _worker_plant.params != plant_params:
-        _worker_plant = Sedan(plant_params)
-    plant = _worker_plant
-    steering = plant.params.steering
     driver = SyntheticDriver(
         data.driver,
         _episode_seed(data, index),
         plant.dt,
-        road_friction=plant.params.tire.road_friction,
-        steering_ratio=steering.steering_ratio,
+        road_friction=knowledge.road_friction,
+        steering_ratio=knowledge.steering_ratio,
     )
     states = np.empty((steps, 3))
     inputs = np.empty((steps, 2))
@@ -249,9 +223,21 @@ def drive_episode(
     }
 
 
-def _collect_one(args: tuple[SedanParams, DataConfig, int, int, str]) -> tuple[int, str, int, bool]:
-    plant_params, data, index, steps, directory = args
-    episode = drive_episode(plant_params, data, index, steps)
+_worker_plant: Plant | None = None
+
+
+def _start_worker(plant: Plant) -> None:
+    """Each worker gets the plant once (pickled: a spawned process rebuilds it), not per episode."""
+    global _worker_plant
+    _worker_plant = plant
+
+
+def _collect_one(
+    data: DataConfig, knowledge: DriverKnowledge, index: int, steps: int, directory: str
+) -> tuple[int, str, int, bool]:
+    if _worker_plant is None:
+        raise RuntimeError("a collection worker was started without its plant")
+    episode = drive_episode(_worker_plant, data, knowledge, index, steps)
     path = Path(directory) / f"episode_{index:04d}.npz"
     arrays = {k: v for k, v in episode.items() if k != "spun"}
 
@@ -263,15 +249,21 @@ def _collect_one(args: tuple[SedanParams, DataConfig, int, int, str]) -> tuple[i
     return index, _sha256(path), len(episode["time_s"]), bool(episode["spun"])
 
 
-def _executor(workers: int) -> Executor:
-    """Spawned worker processes; in-process (one thread) where spawning cannot work.
+def _executor(workers: int, plant: Plant) -> Executor:
+    """Spawned worker processes; in-process (one thread, on ``plant`` itself) where spawning
+    cannot work.
 
     A job run by a process-based launcher (joblib's loky workers) has a start method that a
     freshly spawned child cannot restore; there the sweep's other jobs keep the cores busy.
     """
     if workers > 1 and get_start_method(allow_none=True) in (None, "spawn", "fork", "forkserver"):
-        return ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
-    return ThreadPoolExecutor(1)
+        return ProcessPoolExecutor(
+            workers,
+            mp_context=get_context("spawn"),
+            initializer=_start_worker,
+            initargs=(plant,),
+        )
+    return ThreadPoolExecutor(1, initializer=_start_worker, initargs=(plant,))
 
 
 def _read_manifest(directory: Path) -> dict[str, Any]:
@@ -296,20 +288,23 @@ def _verify(directory: Path, manifest: dict[str, Any]) -> None:
             )
 
 
-def collect(plant_params: SedanParams, data: DataConfig, *, progress: bool = True) -> Path:
+def collect(
+    plant: Plant, data: DataConfig, knowledge: DriverKnowledge, *, progress: bool = True
+) -> Path:
     """Make sure the dataset for this configuration exists and is intact; return its directory."""
-    return collect_counted(plant_params, data, progress=progress)[0]
+    return collect_counted(plant, data, knowledge, progress=progress)[0]
 
 
 def collect_counted(
-    plant_params: SedanParams, data: DataConfig, *, progress: bool = True
+    plant: Plant, data: DataConfig, knowledge: DriverKnowledge, *, progress: bool = True
 ) -> tuple[Path, int]:
     """``collect``, also returning how many episodes this call drove (0: all were reused).
 
     Concurrent callers (the jobs of a parallel sweep) queue on the dataset's lock: the first
     drives the episodes, the others find them stored and drive none.
     """
-    key = content_key(plant_params, data)
+    fingerprint = plant.fingerprint
+    key = content_key(fingerprint, data, knowledge)
     directory = dataset_root(data) / key
     directory.mkdir(parents=True, exist_ok=True)
     with _locked(directory):
@@ -323,7 +318,8 @@ def collect_counted(
                 "format": FORMAT_VERSION,
                 "key": key,
                 "data": data.content(),
-                "plant": dataclasses.asdict(plant_params),
+                "plant": fingerprint,
+                "driver_knowledge": dataclasses.asdict(knowledge),
                 "versions": _versions(),
                 "episodes": {},
                 "complete": False,
@@ -343,9 +339,9 @@ def collect_counted(
                 smoothing=0.1,
             )
             workers = min(data.workers, len(todo))
-            with _executor(workers) as pool:
+            with _executor(workers, plant) as pool:
                 futures = [
-                    pool.submit(_collect_one, (plant_params, data, i, lengths[i], str(directory)))
+                    pool.submit(_collect_one, data, knowledge, i, lengths[i], str(directory))
                     for i in todo
                 ]
                 for future in as_completed(futures):
@@ -408,7 +404,9 @@ def load(directory: Path | str) -> Dataset:
     )
 
 
-def drive_again(plant: Sedan, data: DataConfig, episodes: Sequence[Episode]) -> list[Episode]:
+def drive_again(
+    plant: Plant, data: DataConfig, knowledge: DriverKnowledge, episodes: Sequence[Episode]
+) -> list[Episode]:
     """The same drives (episode seeds and lengths of ``data``) on another plant, not stored.
 
     The driver is closed-loop (it reacts to speed and slip), so on a wet road it drives the same
@@ -418,7 +416,7 @@ def drive_again(plant: Sedan, data: DataConfig, episodes: Sequence[Episode]) -> 
     again = []
     for episode in episodes:
         index = int(episode.name.rsplit("_", 1)[-1])
-        arrays = drive_episode(plant.params, data, index, lengths[index])
+        arrays = drive_episode(plant, data, knowledge, index, lengths[index])
         again.append(
             Episode(
                 episode.name,

@@ -1,19 +1,47 @@
 """Physical parameters of the sedan plant, one dataclass per subsystem, SI units throughout.
 
-The field names are the keys of ``conf/plant/*.yaml``; a wrong value raises a one-line
-``ValueError`` naming the key. Defaults describe the dry-road C-class sedan (see README).
+These dataclasses are the schema of ``conf/plant/*.yaml`` (registered with Hydra's ConfigStore in
+``harness/config.py``): OmegaConf checks key names and types when the config is composed, and
+each ``__post_init__`` checks ranges, raising a one-line ``ValueError`` that names the full key.
+Defaults describe the dry-road C-class sedan (see README).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 
-@dataclass(frozen=True)
+def show(value: float) -> str:
+    """A number as a person typed it: ``-1``, not the ``-1.0`` a float schema turned it into."""
+    return str(int(value)) if float(value).is_integer() else repr(float(value))
+
+
+def check_ranges(
+    prefix: str,
+    part: Any,
+    *,
+    positive: Iterable[str] = (),
+    non_negative: Iterable[str] = (),
+) -> None:
+    """Every number of ``part`` finite, the named ones > 0 or >= 0; errors name ``prefix.key``."""
+    for f in dataclasses.fields(part):
+        value = getattr(part, f.name)
+        for number in value if isinstance(value, tuple) else (value,):
+            if isinstance(number, (int, float)) and not math.isfinite(number):
+                raise ValueError(f"{prefix}.{f.name} must be finite (got {value})")
+    for name in positive:
+        if not getattr(part, name) > 0:
+            raise ValueError(f"{prefix}.{name} must be > 0 (got {show(getattr(part, name))})")
+    for name in non_negative:
+        if not getattr(part, name) >= 0:
+            raise ValueError(f"{prefix}.{name} must be >= 0 (got {show(getattr(part, name))})")
+
+
+@dataclass
 class TireParams:
     """Magic-Formula tyre (pure and combined slip, MF 5.2 style) on a vertical tyre spring.
 
@@ -52,8 +80,40 @@ class TireParams:
     # speed behave like a stiff no-slip contact instead of an unstable damper (0 < gain <= 1).
     slip_limiter_gain: float = 0.5
 
+    def __post_init__(self) -> None:
+        check_ranges(
+            "plant.tire",
+            self,
+            positive=(
+                "road_friction",
+                "nominal_load_n",
+                "unloaded_radius_m",
+                "vertical_stiffness_n_per_m",
+                "cornering_stiffness_front_per_rad",
+                "cornering_stiffness_rear_per_rad",
+                "cornering_stiffness_load_shape",
+                "slip_stiffness_per_unit_slip",
+                "shape_x",
+                "shape_y",
+                "slip_speed_min_mps",
+                "slip_limiter_gain",
+            ),
+            non_negative=("vertical_damping_n_s_per_m",),
+        )
+        for name in ("curvature_x", "curvature_y"):
+            value = getattr(self, name)
+            if not value < 1:
+                raise ValueError(
+                    f"plant.tire.{name} must be < 1 for a Magic-Formula curve (got {show(value)})"
+                )
+        if not self.slip_limiter_gain <= 1:
+            raise ValueError(
+                "plant.tire.slip_limiter_gain must be in (0, 1] "
+                f"(got {show(self.slip_limiter_gain)})"
+            )
 
-@dataclass(frozen=True)
+
+@dataclass
 class PowertrainParams:
     """Front-wheel drive through an open differential; torque falls with wheel speed."""
 
@@ -61,16 +121,28 @@ class PowertrainParams:
     max_power_w: float = 110_000.0  # full pedal; the paper's throttle 0.2 gives 22 kW
     max_wheel_speed_radps: float = 220.0  # torque tapers to zero here (about 250 km/h)
 
+    def __post_init__(self) -> None:
+        check_ranges(
+            "plant.powertrain",
+            self,
+            positive=("peak_wheel_torque_nm", "max_power_w", "max_wheel_speed_radps"),
+        )
 
-@dataclass(frozen=True)
+
+@dataclass
 class BrakeParams:
     """Brake torque per wheel proportional to master-cylinder pressure."""
 
     front_gain_nm_per_mpa: float = 145.0
     rear_gain_nm_per_mpa: float = 52.0
 
+    def __post_init__(self) -> None:
+        check_ranges(
+            "plant.brakes", self, non_negative=("front_gain_nm_per_mpa", "rear_gain_nm_per_mpa")
+        )
 
-@dataclass(frozen=True)
+
+@dataclass
 class SteeringParams:
     """Steering-wheel angle to road-wheel angles through a ratio and Ackermann geometry."""
 
@@ -79,8 +151,20 @@ class SteeringParams:
     servo_stiffness_nm_per_rad: float = 3000.0
     servo_damping_nm_s_per_rad: float = 60.0
 
+    def __post_init__(self) -> None:
+        check_ranges(
+            "plant.steering",
+            self,
+            positive=("steering_ratio", "servo_stiffness_nm_per_rad"),
+            non_negative=("servo_damping_nm_s_per_rad",),
+        )
+        if not 0 <= self.ackermann <= 1:
+            raise ValueError(
+                f"plant.steering.ackermann must be in [0, 1] (got {show(self.ackermann)})"
+            )
 
-@dataclass(frozen=True)
+
+@dataclass
 class ResistanceParams:
     """Rolling resistance on every wheel and aerodynamic drag on the body."""
 
@@ -89,8 +173,16 @@ class ResistanceParams:
     frontal_area_m2: float = 2.2
     air_density_kg_per_m3: float = 1.2
 
+    def __post_init__(self) -> None:
+        check_ranges(
+            "plant.resistance",
+            self,
+            positive=("frontal_area_m2", "air_density_kg_per_m3"),
+            non_negative=("rolling_resistance", "drag_coefficient"),
+        )
 
-@dataclass(frozen=True)
+
+@dataclass
 class ChassisParams:
     """Masses and the anti-roll bars; geometry and springs live in models/mjcf/sedan.xml."""
 
@@ -100,8 +192,22 @@ class ChassisParams:
     anti_roll_front_n_per_m: float = 10_400.0
     anti_roll_rear_n_per_m: float = 3_000.0
 
+    def __post_init__(self) -> None:
+        self.payload_position_m = tuple(self.payload_position_m)  # the schema hands over a list
+        if len(self.payload_position_m) != 3:
+            raise ValueError(
+                "plant.chassis.payload_position_m must be (x, y, z) "
+                f"(got {list(self.payload_position_m)})"
+            )
+        check_ranges(
+            "plant.chassis",
+            self,
+            positive=("sprung_mass_kg",),
+            non_negative=("payload_kg", "anti_roll_front_n_per_m", "anti_roll_rear_n_per_m"),
+        )
 
-@dataclass(frozen=True)
+
+@dataclass
 class SedanParams:
     """Everything that defines one plant variant (``conf/plant/<name>.yaml``)."""
 
@@ -116,114 +222,15 @@ class SedanParams:
     chassis: ChassisParams = field(default_factory=ChassisParams)
 
     def __post_init__(self) -> None:
-        _validate(self)
+        check_ranges("plant", self, positive=("control_period_s", "physics_timestep_s"))
+        ratio = self.control_period_s / self.physics_timestep_s
+        if abs(ratio - round(ratio)) > 1e-9:
+            raise ValueError(
+                f"plant.control_period_s ({self.control_period_s}) must be a whole multiple of "
+                f"plant.physics_timestep_s ({self.physics_timestep_s})"
+            )
 
     @property
     def substeps(self) -> int:
+        """Physics steps per control period."""
         return round(self.control_period_s / self.physics_timestep_s)
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any] | None = None) -> SedanParams:
-        """Build from a (possibly partial) nested mapping; unknown keys are errors."""
-        return _build(cls, dict(config or {}), prefix="plant")
-
-
-_POSITIVE = {
-    "control_period_s",
-    "physics_timestep_s",
-    "road_friction",
-    "nominal_load_n",
-    "unloaded_radius_m",
-    "vertical_stiffness_n_per_m",
-    "cornering_stiffness_front_per_rad",
-    "cornering_stiffness_rear_per_rad",
-    "cornering_stiffness_load_shape",
-    "slip_stiffness_per_unit_slip",
-    "shape_x",
-    "shape_y",
-    "slip_speed_min_mps",
-    "slip_limiter_gain",
-    "peak_wheel_torque_nm",
-    "max_power_w",
-    "max_wheel_speed_radps",
-    "steering_ratio",
-    "servo_stiffness_nm_per_rad",
-    "frontal_area_m2",
-    "air_density_kg_per_m3",
-    "sprung_mass_kg",
-}
-_NON_NEGATIVE = {
-    "vertical_damping_n_s_per_m",
-    "front_gain_nm_per_mpa",
-    "rear_gain_nm_per_mpa",
-    "servo_damping_nm_s_per_rad",
-    "rolling_resistance",
-    "drag_coefficient",
-    "payload_kg",
-    "anti_roll_front_n_per_m",
-    "anti_roll_rear_n_per_m",
-}
-
-
-def _check_value(key: str, value: Any) -> None:
-    leaf = key.rsplit(".", 1)[-1]
-    if isinstance(value, (int, float)) and not math.isfinite(value):
-        raise ValueError(f"{key} must be finite (got {value})")
-    if leaf in _POSITIVE and not value > 0:
-        raise ValueError(f"{key} must be > 0 (got {value})")
-    if leaf in _NON_NEGATIVE and not value >= 0:
-        raise ValueError(f"{key} must be >= 0 (got {value})")
-    if leaf in ("curvature_x", "curvature_y") and not value < 1:
-        raise ValueError(f"{key} must be < 1 for a Magic-Formula curve (got {value})")
-    if leaf == "slip_limiter_gain" and not value <= 1:
-        raise ValueError(f"{key} must be in (0, 1] (got {value})")
-    if leaf == "ackermann" and not 0 <= value <= 1:
-        raise ValueError(f"{key} must be in [0, 1] (got {value})")
-
-
-def _validate(params: SedanParams, prefix: str = "plant") -> None:
-    for sub in dataclasses.fields(params):
-        value = getattr(params, sub.name)
-        if dataclasses.is_dataclass(value):
-            for leaf in dataclasses.fields(value):
-                _check_value(f"{prefix}.{sub.name}.{leaf.name}", getattr(value, leaf.name))
-        else:
-            _check_value(f"{prefix}.{sub.name}", value)
-    ratio = params.control_period_s / params.physics_timestep_s
-    if abs(ratio - round(ratio)) > 1e-9:
-        raise ValueError(
-            f"{prefix}.control_period_s ({params.control_period_s}) must be a whole multiple of "
-            f"{prefix}.physics_timestep_s ({params.physics_timestep_s})"
-        )
-
-
-def _build(cls: type, config: dict[str, Any], prefix: str) -> Any:
-    known = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs: dict[str, Any] = {}
-    for key, value in config.items():
-        if key.startswith("_"):  # Hydra's _target_ and friends
-            continue
-        if key not in known:
-            raise ValueError(f"unknown key {prefix}.{key}; known keys: {', '.join(known)}")
-        sub_type = _dataclass_of(known[key])
-        if sub_type is not None:
-            if not isinstance(value, Mapping):
-                raise ValueError(f"{prefix}.{key} must be a mapping (got {value!r})")
-            kwargs[key] = _build(sub_type, dict(value), f"{prefix}.{key}")
-        elif isinstance(value, (list, tuple)):
-            kwargs[key] = tuple(float(v) for v in value)
-        else:
-            kwargs[key] = value
-    if cls is SedanParams:
-        return cls(**kwargs)
-    instance = cls(**kwargs)
-    for f in dataclasses.fields(instance):
-        _check_value(f"{prefix}.{f.name}", getattr(instance, f.name))
-    return instance
-
-
-def _dataclass_of(f: dataclasses.Field) -> type | None:
-    default_factory = f.default_factory
-    if default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(default_factory):
-        return default_factory  # type: ignore[return-value]
-    return None

@@ -9,7 +9,9 @@ master-cylinder pressure ``-pedal`` in MPa within [0, 9.1]; one pedal at a time 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import dataclasses
+import hashlib
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -21,9 +23,6 @@ from harness.plant import native
 from harness.plant.params import SedanParams
 
 MJCF_PATH: Path = MJCF_DIR / "sedan.xml"
-
-STATE_NAMES = ("vx", "vy", "yaw_rate")
-INPUT_NAMES = ("steer_wheel_deg", "pedal")
 STEER_WHEEL_LIMIT_DEG = 450.0
 THROTTLE_MAX = 0.2
 BRAKE_MAX_MPA = 9.1
@@ -116,18 +115,30 @@ def _pack(model: mujoco.MjModel, params: SedanParams) -> np.ndarray:
     return np.array([float(values[name]) for name in native.PARAM_NAMES])
 
 
-class Sedan:
-    """A C-class sedan on a flat road; steps at ``dt`` = 10 ms with 1 ms physics substeps."""
+@cache
+def _source_digests() -> dict[str, str]:
+    """SHA-256 of the files besides the parameters that decide how the car moves."""
+    return {
+        path.name: hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in (native.SOURCE, MJCF_PATH)
+    }
 
-    state_names = STATE_NAMES
-    input_names = INPUT_NAMES
+
+class Sedan:
+    """A C-class sedan on a flat road; steps at ``dt`` = 10 ms with 1 ms physics substeps.
+
+    Implements :class:`harness.interfaces.Plant`. ``Sedan()`` is the dry default,
+    ``Sedan(params)`` any variant; Hydra builds it from ``conf/plant/*.yaml`` as
+    ``Sedan(**fields)`` with ``SedanParams``' fields (sub-blocks already their dataclasses).
+    """
+
     input_low = np.array([-STEER_WHEEL_LIMIT_DEG, -BRAKE_MAX_MPA])
     input_high = np.array([STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX])
 
-    def __init__(self, params: SedanParams | None = None, **config: Any) -> None:
-        if params is not None and config:
-            raise ValueError("give either params or config keys, not both")
-        self.params = params if params is not None else SedanParams.from_config(config)
+    def __init__(self, params: SedanParams | None = None, /, **fields: Any) -> None:
+        if params is not None and fields:
+            raise ValueError("give either params or SedanParams fields, not both")
+        self.params = params if params is not None else SedanParams(**fields)
         native.install_callback()
         self.model = build_model(self.params)
         self.data = mujoco.MjData(self.model)
@@ -141,9 +152,19 @@ class Sedan:
         self.clipped_inputs = 0
         self.reset()
 
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> Sedan:
-        return cls(SedanParams.from_config(config))
+    def __reduce__(self) -> tuple[type[Sedan], tuple[SedanParams]]:
+        """A Sedan pickles as its parameters: a worker process rebuilds it, at rest."""
+        return type(self), (self.params,)
+
+    @property
+    def fingerprint(self) -> dict[str, Any]:
+        """Everything that decides how this car moves: what a dataset of it is keyed on."""
+        return {
+            "plant": type(self).__name__,
+            "params": dataclasses.asdict(self.params),
+            "sources": dict(_source_digests()),
+            "mujoco": mujoco.__version__,
+        }
 
     def _settle(self) -> float:
         """Let the car sink onto its springs once; every reset starts from this rest pose."""
@@ -186,10 +207,6 @@ class Sedan:
         return self.state
 
     @property
-    def time(self) -> float:
-        return float(self.data.time)
-
-    @property
     def state(self) -> np.ndarray:
         """(vx, vy, yaw_rate) of the centre of gravity in the yaw frame, SI."""
         velocity = self.data.qvel[self._free_dof : self._free_dof + 3]
@@ -214,8 +231,3 @@ class Sedan:
         """(X, Y, yaw) in the world frame, for display."""
         position = self.data.qpos[self._free_qpos : self._free_qpos + 2]
         return np.array([position[0], position[1], self.yaw])
-
-    @property
-    def roll(self) -> float:
-        w, x, y, z = self.data.qpos[self._free_qpos + 3 : self._free_qpos + 7]
-        return float(np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))

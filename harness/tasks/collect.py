@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from harness.config import as_object
 from harness.data.collect import prepare
 from harness.data.store import DataConfig
 from harness.plant import Sedan
@@ -16,7 +17,7 @@ class Collect:
     """The data stage alone: ``python -m harness task=collect data=paper``."""
 
     def __init__(self, data: Mapping[str, Any]) -> None:
-        self.data = DataConfig.from_config(data)
+        self.data = as_object(data, DataConfig)
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         _, metrics = prepare(plant, self.data, recorder, output_dir)

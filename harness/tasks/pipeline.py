@@ -31,7 +31,9 @@ from pathlib import Path
 from typing import Any
 
 from harness import training_report
+from harness.config import as_object
 from harness.data.collect import prepare
+from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
 from harness.plant import Sedan
@@ -64,7 +66,7 @@ class Pipeline:
         references: Mapping[str, Reference] | None = None,
         robustness_repeats: int = 100,
     ) -> None:
-        self.data = DataConfig.from_config(data)
+        self.data = as_object(data, DataConfig)
         self.learner, self.learner_name = learner, learner_name
         self.controllers = {controller_name: controller} if controller is not None else {}
         for name, make in (extra_controllers or {}).items():
@@ -216,7 +218,7 @@ class Pipeline:
         output_dir: Path,
     ) -> dict[str, Any]:
         """The model of this run's plant, on the test drives driven again on ``plant``."""
-        episodes = drive_again(plant, self.data, dataset.test)
+        episodes = drive_again(plant, self.data, DriverKnowledge.of(plant.params), dataset.test)
         directory = output_dir / "generalization" / name
         directory.mkdir(parents=True, exist_ok=True)
         prefix = f"generalization/{name}/"
