@@ -70,7 +70,7 @@ def _data():
 def ours_trained(name: str, steps: int) -> dict:
     """Fits of ``WARMUP`` and ``WARMUP + steps`` batches (after a throwaway fit that pays the
     imports), twice each; the difference of the faster ones is the per-batch cost, the rest of
-    the short fit is setup (windows, validation, checkpoint, loss figure)."""
+    the short fit is setup (windows, validation, checkpoint)."""
     from learners import DNN, DeepEDMD
 
     train, validation, normalizer = _data()
@@ -79,8 +79,9 @@ def ours_trained(name: str, steps: int) -> dict:
     def fit_seconds(max_steps: int) -> float:
         learner = cls(training={"max_steps": max_steps, "progress": False})
         with tempfile.TemporaryDirectory() as out:
+            learner.checkpoint_dir = Path(out)
             start = time.perf_counter()
-            learner.fit(train, validation, normalizer, output_dir=Path(out))
+            learner.fit(train, validation, normalizer)
             return time.perf_counter() - start
 
     fit_seconds(10)
@@ -163,11 +164,20 @@ def straightforward_trained(name: str, steps: int) -> dict:
     return {"ms_per_batch": 1e3 * (time.perf_counter() - start) / steps}
 
 
-def ours_lifted(name: str) -> dict:
-    from learners import EDMD, ELMEDMD
+def _lifted(name: str):
+    """The learner of ``conf/learner/<name>.yaml`` (seed 0): EDMD with that config's dictionary."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
 
+    from harness.paths import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return instantiate(compose(config_name="config", overrides=[f"learner={name}"]).learner)
+
+
+def ours_lifted(name: str) -> dict:
     train, validation, normalizer = _data()
-    learner = {"edmd": EDMD, "elm_edmd": ELMEDMD}[name]()
+    learner = _lifted(name)
     start = time.perf_counter()
     learner.fit(train, validation, normalizer)
     return {"fit_s": time.perf_counter() - start}
@@ -175,13 +185,11 @@ def ours_lifted(name: str) -> dict:
 
 def pinv_lifted(name: str) -> dict:
     """The paper's closed form with an explicit pseudo-inverse of W W^T (same observables)."""
-    from learners import EDMD, ELMEDMD
-
     train, _, normalizer = _data()
-    learner = {"edmd": EDMD, "elm_edmd": ELMEDMD}[name]()
+    learner = _lifted(name)
     start = time.perf_counter()
     states_n = np.concatenate([normalizer.states(e.states) for e in train])
-    learner._init_observables(states_n, np.random.default_rng(learner.seed))
+    learner.dictionary.fit(states_n, np.random.default_rng(learner.seed))
     wwt = vwt = None
     for e in train:
         z = learner._lift_n(normalizer.states(e.states))

@@ -1,15 +1,28 @@
-"""Learners of x_{k+1} = f(x_k, u_k): EDMD, ELM-EDMD, DNN and Deep EDMD (paper Secs. IV, VI).
+"""Learners of x_{k+1} = f(x_k, u_k): EDMD (any dictionary), DNN, Deep EDMD (paper Secs. IV, VI).
 
 Every learner follows :class:`learners.base.Learner` (``fit`` / ``predict`` / ``save`` / ``load``);
-the Koopman ones (EDMD, ELM-EDMD, Deep EDMD) also follow :class:`learners.base.KoopmanLearner`
-(``A_``, ``B_``, ``C_``, ``lift``, ``normalizer_``) for the MPC. ``learners.load(path)`` reads any
-saved learner. Configs: ``conf/learner/{edmd,elm_edmd,dnn,deep_edmd}.yaml``.
+``fit`` takes data only (figures and recordings of its loss curves are the caller's). The Koopman
+ones (EDMD, Deep EDMD) also follow :class:`learners.base.KoopmanLearner` (``A_``, ``B_``, ``C_``,
+``lift``, ``normalizer_``) for the MPC. EDMD's observables are a dictionary
+(:mod:`learners.dictionaries`): thin-plate RBFs (the paper's EDMD) or random ELM units
+(ELM-EDMD). ``learners.load(path)`` reads any saved learner. Configs:
+``conf/learner/{edmd,elm_edmd,dnn,deep_edmd}.yaml``.
 """
 
 from learners.base import KoopmanLearner, Learner, load
 from learners.deep_edmd import DeepEDMD
+from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF
 from learners.dnn import DNN
 from learners.edmd import EDMD
-from learners.elm_edmd import ELMEDMD
 
-__all__ = ["DNN", "EDMD", "ELMEDMD", "DeepEDMD", "KoopmanLearner", "Learner", "load"]
+__all__ = [
+    "DNN",
+    "EDMD",
+    "DeepEDMD",
+    "Dictionary",
+    "KoopmanLearner",
+    "Learner",
+    "RandomFeatures",
+    "ThinPlateRBF",
+    "load",
+]

@@ -30,12 +30,14 @@ import numpy as np
 import torch
 
 from harness.data.episode import Episode, MinMaxNormalizer
-from harness.recorder import Recorder
 
 __all__ = ["FORMAT", "KoopmanLearner", "Learner", "load"]
 
 FORMAT = "koopman-vehicle-harness/learner"
 FORMAT_VERSION = 1
+# Classes that files of this version may name and that now live elsewhere (one EDMD class with
+# a dictionary replaced ELM-EDMD's own class; EDMD.from_hyperparameters reads its keywords).
+_MOVED = {"learners.elm_edmd.ELMEDMD": "learners.edmd.EDMD"}
 STATE_DIM = 3  # vx, vy, yaw_rate
 INPUT_DIM = 2  # steer_wheel_deg, pedal
 
@@ -63,11 +65,11 @@ class Learner(ABC):
         train: Sequence[Episode],
         validation: Sequence[Episode],
         normalizer: MinMaxNormalizer,
-        *,
-        recorder: Recorder | None = None,
-        output_dir: Path | None = None,
     ) -> Self:
-        """Fit on ``train`` (``validation`` for early stopping where it applies); return self."""
+        """Fit on ``train`` (``validation`` for early stopping where it applies); return self.
+
+        Data in, fitted attributes out: no files, recordings or figures (the caller's).
+        """
 
     @abstractmethod
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
@@ -108,6 +110,11 @@ class Learner(ABC):
         if not isinstance(learner, cls):
             raise ValueError(f"{path} holds a {type(learner).__name__}, not a {cls.__name__}")
         return learner
+
+    @classmethod
+    def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
+        """The learner a model file's ``hyperparameters`` describe (unfitted)."""
+        return cls(**hyperparameters)
 
     @property
     def hyperparameters(self) -> dict[str, Any]:
@@ -169,13 +176,14 @@ def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT
             f"{path} models {payload['state_dim']} states and {payload['input_dim']} inputs; "
             f"expected {state_dim} states and {input_dim} inputs"
         )
-    module_name, _, class_name = payload["class"].rpartition(".")
+    saved_class = str(payload["class"])
+    module_name, _, class_name = _MOVED.get(saved_class, saved_class).rpartition(".")
     if not module_name.startswith("learners."):
         raise ValueError(f"{path} names class {payload['class']!r} outside the learners package")
     cls = getattr(importlib.import_module(module_name), class_name, None)
     if not (isinstance(cls, type) and issubclass(cls, Learner)):
         raise ValueError(f"{path} names {payload['class']!r}, which is not a learner class")
-    learner = cls(**payload["hyperparameters"])
+    learner = cls.from_hyperparameters(payload["hyperparameters"])
     learner.normalizer_ = MinMaxNormalizer.from_dict(payload["normalizer"])
     learner._set_state(payload["tensors"])
     return learner

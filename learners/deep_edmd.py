@@ -48,7 +48,7 @@ from learners.edmd import linear_rollout
 from learners.linalg import ridge_lstsq, row_chunks
 from learners.nets import Dense, LayerSpec, mlp_apply, mlp_backward, mlp_forward, mlp_specs
 from learners.trained import TrainedLearner
-from learners.training import batch_mean_terms
+from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
 __all__ = ["DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
 
@@ -57,7 +57,8 @@ _LSTSQ_RIDGE = 1e-10  # relative ridge of the optional least-squares refit of A,
 
 @dataclass(frozen=True)
 class LossWeights:
-    """alpha_1 .. alpha_6 of the paper's total loss (defaults: its Table of hyperparameters)."""
+    """alpha_1 .. alpha_6 of the paper's total loss (defaults: its Table of hyperparameters);
+    the schema of ``learner.alpha``."""
 
     ox: float = 1.0
     xx: float = 1.0
@@ -66,16 +67,9 @@ class LossWeights:
     encoder_l2: float = 1e-9
     decoder_l2: float = 1e-9
 
-    @classmethod
-    def from_config(cls, values: Mapping[str, Any] | None) -> LossWeights:
-        values = dict(values or {})
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"learner.alpha.{sorted(unknown)[0]} is not a loss weight")
-        weights = cls(**values)
-        for f in fields(cls):
-            check_nonnegative(f"alpha.{f.name}", getattr(weights, f.name))
-        return weights
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            check_nonnegative(f"alpha.{f.name}", getattr(self, f.name))
 
     def data_terms(self) -> dict[str, float]:
         return {"ox": self.ox, "xx": self.xx, "xo": self.xo, "inf": self.inf}
@@ -286,11 +280,11 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         encoder_hidden: Sequence[int] = (32, 64),
         decoder_hidden: Sequence[int] = (128, 64, 32),
         lifted_includes_state: bool = True,
-        alpha: Mapping[str, float] | None = None,
+        alpha: LossWeights | Mapping[str, float] | None = None,
         prediction_output: str = "decoder",
         refit_koopman_lstsq: bool = False,
-        random_layer: Mapping[str, Any] | None = None,
-        training: Mapping[str, Any] | None = None,
+        random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
+        training: TrainingConfig | Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__(horizon=horizon, random_layer=random_layer, training=training)
         self.lifted_dim = check_int("lifted_dim", lifted_dim, 1)
@@ -303,7 +297,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             lifted_includes_state,
         )
         self.lifted_includes_state = lifted_includes_state
-        self.alpha = LossWeights.from_config(alpha)
+        self.alpha = block(LossWeights, alpha, "alpha")
         self.prediction_output = check_choice(
             "prediction_output", prediction_output, ("decoder", "linear")
         )

@@ -24,29 +24,23 @@ import torch
 from learners.base import check_int, check_nonnegative
 from learners.nets import Dense, LayerSpec, mlp_apply, mlp_forward, mlp_specs
 from learners.trained import TrainedLearner
-from learners.training import batch_mean_terms
+from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
 __all__ = ["DNN", "DNNLossWeights", "dnn_loss_terms", "dnn_step"]
 
 
 @dataclass(frozen=True)
 class DNNLossWeights:
-    """beta_1 .. beta_3 of L_mlp (defaults: the paper's Table of hyperparameters)."""
+    """beta_1 .. beta_3 of L_mlp (defaults: the paper's Table of hyperparameters); the schema of
+    ``learner.beta``."""
 
     prediction: float = 1.0
     inf: float = 1e-9
     l2: float = 1e-9
 
-    @classmethod
-    def from_config(cls, values: Mapping[str, Any] | None) -> DNNLossWeights:
-        values = dict(values or {})
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"learner.beta.{sorted(unknown)[0]} is not a loss weight")
-        weights = cls(**values)
-        for f in fields(cls):
-            check_nonnegative(f"beta.{f.name}", getattr(weights, f.name))
-        return weights
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            check_nonnegative(f"beta.{f.name}", getattr(self, f.name))
 
 
 def dnn_loss_terms(
@@ -199,16 +193,16 @@ class DNN(TrainedLearner):
         self,
         hidden: Sequence[int] = (32, 64, 128, 128, 64, 32),
         horizon: int = 41,
-        beta: Mapping[str, float] | None = None,
+        beta: DNNLossWeights | Mapping[str, float] | None = None,
         residual: bool = False,
-        random_layer: Mapping[str, Any] | None = None,
-        training: Mapping[str, Any] | None = None,
+        random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
+        training: TrainingConfig | Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__(horizon=horizon, random_layer=random_layer, training=training)
         self.hidden = [check_int("hidden", w, 1) for w in hidden]
         if not self.hidden:
             raise ValueError("learner.hidden must list at least one width (got [])")
-        self.beta = DNNLossWeights.from_config(beta)
+        self.beta = block(DNNLossWeights, beta, "beta")
         self.residual = bool(residual)
         self._random_layer_width = self.hidden[-1]
         self._hyperparameters = {

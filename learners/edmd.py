@@ -1,13 +1,13 @@
-"""EDMD with thin-plate-spline radial basis observables (the paper's baseline, Sec. VI).
+"""EDMD: the one exact-least-squares lifted-linear learner; its observables are a dictionary.
 
 Lifted state (normalized coordinates, x_n = normalizer.states(x))::
 
-    z = [x_n (3); 1 (if include_constant); phi_1(x_n) .. phi_K(x_n)],
-    phi_i(x) = ||x - c_i||^2 log ||x - c_i||                       (paper's eq. for the TPS RBF)
+    z = [x_n (n); 1 (if include_constant); phi_1(x_n) .. phi_K(x_n)]
 
-with K = ``num_centers`` centres drawn from N(mean, std^2) of the normalized training states,
-per dimension, seeded. [A B] minimize the one-step residual of the paper's EDMD eq. over all
-pairs (z_k, v_k) -> z_{k+1} of the training episodes, by ridge least squares
+where phi is the ``dictionary`` (:mod:`learners.dictionaries`): thin-plate-spline RBFs give the
+paper's EDMD baseline (Sec. VI, ``conf/learner/edmd.yaml``), random ELM units give ELM-EDMD
+(``conf/learner/elm_edmd.yaml``). [A B] minimize the one-step residual of the paper's EDMD eq.
+over all pairs (z_k, v_k) -> z_{k+1} of the training episodes, by ridge least squares
 (:func:`learners.linalg.ridge_lstsq`). Because x_n is part of z, C = [I 0] exactly (the paper's
 least-squares C gives the same matrix). The constant observable lets the lifted model represent
 the affine terms that min-max normalization introduces (a linear plant is affine in x_n).
@@ -15,16 +15,13 @@ the affine terms that min-max normalization introduces (a linear plant is affine
 
 from __future__ import annotations
 
-from abc import abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
-from pathlib import Path
 from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
 
 from harness.data.episode import Episode, MinMaxNormalizer
-from harness.recorder import Recorder
 from learners.base import (
     KoopmanLearner,
     check_episodes,
@@ -32,9 +29,10 @@ from learners.base import (
     check_nonnegative,
     check_rollout_args,
 )
+from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF, dictionary_from
 from learners.linalg import ridge_lstsq, row_chunks
 
-__all__ = ["EDMD", "LiftedLinearLearner", "linear_rollout"]
+__all__ = ["EDMD", "linear_rollout"]
 
 _CHUNK_ROWS = 20_000
 
@@ -51,43 +49,60 @@ def linear_rollout(a: np.ndarray, b: np.ndarray, z0: np.ndarray, v: np.ndarray) 
     return z
 
 
-class LiftedLinearLearner(KoopmanLearner):
-    """EDMD on a fixed dictionary of observables; subclasses define the observables only."""
+class EDMD(KoopmanLearner):
+    """EDMD on a fixed dictionary of observables (see the module docstring).
 
-    def __init__(self, *, ridge: float, include_constant: bool, seed: int) -> None:
+    Args:
+        dictionary: The observables phi (a :class:`~learners.dictionaries.Dictionary`, or its
+            ``hyperparameters`` with ``_target_``); None gives 100 thin-plate RBFs.
+        ridge: Tikhonov weight relative to the mean squared one-step residual.
+        include_constant: Add the observable 1 to the lifted state.
+        seed: Seed of the dictionary's random draw.
+    """
+
+    name: ClassVar[str] = "edmd"
+
+    def __init__(
+        self,
+        dictionary: Dictionary | Mapping[str, Any] | None = None,
+        ridge: float = 1e-10,
+        include_constant: bool = True,
+        seed: int = 0,
+    ) -> None:
+        self.dictionary = dictionary_from(dictionary)
         self.ridge = check_nonnegative("ridge", ridge)
         self.include_constant = bool(include_constant)
         self.seed = check_int("seed", seed, 0)
+        self._hyperparameters: dict[str, Any] = {
+            "dictionary": self.dictionary.hyperparameters,
+            "ridge": self.ridge,
+            "include_constant": self.include_constant,
+            "seed": self.seed,
+        }
 
-    # -- subclass hooks ------------------------------------------------------------------------
-
-    @abstractmethod
-    def _init_observables(self, states_n: np.ndarray, rng: np.random.Generator) -> None:
-        """Draw the dictionary's parameters from the normalized training states."""
-
-    @abstractmethod
-    def _observables(self, x_n: np.ndarray) -> np.ndarray:
-        """phi(x_n): (..., n) -> (..., K)."""
-
-    # -- the contract ----------------------------------------------------------------------------
+    @classmethod
+    def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
+        """Also reads the flat hyperparameters of files written before dictionaries existed:
+        ``num_centers`` (class ``learners.edmd.EDMD``) or ``num_features``, ``activation``,
+        ``weight_scale``, ``bias_scale`` (class ``learners.elm_edmd.ELMEDMD``)."""
+        values = dict(hyperparameters)
+        if "num_centers" in values:
+            values["dictionary"] = ThinPlateRBF(values.pop("num_centers"))
+        elif "num_features" in values:
+            keys = ("num_features", "activation", "weight_scale", "bias_scale")
+            values["dictionary"] = RandomFeatures(**{k: values.pop(k) for k in keys})
+        return cls(**values)
 
     def fit(
-        self,
-        train: Sequence[Episode],
-        validation: Sequence[Episode],
-        normalizer: MinMaxNormalizer,
-        *,
-        recorder: Recorder | None = None,
-        output_dir: Path | None = None,
+        self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on all one-step pairs of ``train``; ``validation`` is only checked."""
-        del recorder, output_dir  # nothing iterative to record
         check_episodes(train, "train", normalizer)
         if validation:
             check_episodes(validation, "validation", normalizer)
         self.normalizer_ = normalizer
         states_n = np.concatenate([normalizer.states(e.states) for e in train])
-        self._init_observables(states_n, np.random.default_rng(self.seed))
+        self.dictionary.fit(states_n, np.random.default_rng(self.seed))
 
         def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
             for e in train:
@@ -121,64 +136,12 @@ class LiftedLinearLearner(KoopmanLearner):
         parts = [x_n]
         if self.include_constant:
             parts.append(np.ones((*x_n.shape[:-1], 1)))
-        parts.append(self._observables(x_n))
+        parts.append(self.dictionary(x_n))
         return np.concatenate(parts, axis=-1)
 
-    def _state(self) -> dict[str, np.ndarray]:
-        return {"A": self.A_, "B": self.B_, "C": self.C_, **self._observable_state()}
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
+        return {"A": self.A_, "B": self.B_, "C": self.C_, **self.dictionary.state()}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.A_, self.B_, self.C_ = (state[k].numpy().astype(np.float64) for k in "ABC")
-        self._set_observable_state({k: v.numpy() for k, v in state.items() if k not in "ABC"})
-
-    @abstractmethod
-    def _observable_state(self) -> dict[str, np.ndarray]:
-        """The dictionary's parameters, to save."""
-
-    @abstractmethod
-    def _set_observable_state(self, state: Mapping[str, np.ndarray]) -> None:
-        """Restore what :meth:`_observable_state` returned."""
-
-
-class EDMD(LiftedLinearLearner):
-    """EDMD with ``num_centers`` thin-plate-spline RBF observables (see the module docstring).
-
-    Args:
-        num_centers: K, the number of RBF centres (0 gives DMD with inputs on x_n).
-        ridge: Tikhonov weight relative to the mean squared one-step residual.
-        include_constant: Add the observable 1 to the lifted state.
-        seed: Seed of the centres.
-    """
-
-    name: ClassVar[str] = "edmd"
-
-    def __init__(
-        self,
-        num_centers: int = 100,
-        ridge: float = 1e-10,
-        include_constant: bool = True,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(ridge=ridge, include_constant=include_constant, seed=seed)
-        self.num_centers = check_int("num_centers", num_centers, 0)
-        self._hyperparameters: dict[str, Any] = {
-            "num_centers": self.num_centers,
-            "ridge": self.ridge,
-            "include_constant": self.include_constant,
-            "seed": self.seed,
-        }
-
-    def _init_observables(self, states_n: np.ndarray, rng: np.random.Generator) -> None:
-        mean, std = states_n.mean(0), states_n.std(0)
-        self.centers_ = rng.normal(mean, std, size=(self.num_centers, states_n.shape[1]))
-
-    def _observables(self, x_n: np.ndarray) -> np.ndarray:
-        r2 = np.sum((x_n[..., None, :] - self.centers_) ** 2, axis=-1)
-        # r^2 log r = r^2 log(r^2) / 2, continuous with value 0 at r = 0
-        return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
-
-    def _observable_state(self) -> dict[str, np.ndarray]:
-        return {"centers": self.centers_}
-
-    def _set_observable_state(self, state: Mapping[str, np.ndarray]) -> None:
-        self.centers_ = state["centers"].astype(np.float64)
+        self.dictionary.set_state({k: v.numpy() for k, v in state.items() if k not in "ABC"})

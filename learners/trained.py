@@ -11,11 +11,10 @@ import numpy as np
 import torch
 
 from harness.data.episode import Episode, MinMaxNormalizer
-from harness.recorder import Recorder
 from learners import training as loop
 from learners.base import Learner, check_episodes, check_int, check_rollout_args
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
-from learners.training import History, Objective, RandomLayerConfig, TrainingConfig
+from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, block
 from learners.windows import WindowData
 
 __all__ = ["TrainedLearner"]
@@ -35,22 +34,28 @@ class TrainedLearner(Learner):
     """Windows, training loop, checkpoints and the batched, seeded-random-layer ``predict``.
 
     Fitted attributes: ``params_`` (:class:`~learners.nets.FlatParameters`), ``history_``
-    (:class:`~learners.training.History`), ``normalizer_``.
+    (:class:`~learners.training.History`, the loss curves), ``normalizer_``.
+
+    ``checkpoint_dir`` (None: no checkpoints) is where ``fit`` keeps ``<name>.ckpt`` so that a
+    killed training resumes; it is the caller's (the run directory), not a hyperparameter: it
+    is neither saved with the model nor part of the checkpoint's fingerprint.
     """
 
     params_: FlatParameters
     history_: History
+    checkpoint_dir: Path | None
 
     def __init__(
         self,
         *,
         horizon: int,
-        random_layer: Mapping[str, Any] | None,
-        training: Mapping[str, Any] | None,
+        random_layer: RandomLayerConfig | Mapping[str, Any] | None,
+        training: TrainingConfig | Mapping[str, Any] | None,
     ) -> None:
         self.horizon = check_int("horizon", horizon, 1)
-        self.random_layer = RandomLayerConfig.from_config(random_layer)
-        self.training = TrainingConfig.from_config(training)
+        self.random_layer = block(RandomLayerConfig, random_layer, "random_layer")
+        self.training = block(TrainingConfig, training, "training")
+        self.checkpoint_dir = None
 
     # -- subclass hooks --------------------------------------------------------------------------
 
@@ -78,11 +83,9 @@ class TrainedLearner(Learner):
         train: Sequence[Episode],
         validation: Sequence[Episode],
         normalizer: MinMaxNormalizer,
-        *,
-        recorder: Recorder | None = None,
-        output_dir: Path | None = None,
     ) -> Self:
-        """Train on windows of ``train``; early-stop on ``validation``; resume from output_dir."""
+        """Train on windows of ``train``; early-stop on ``validation``; resume from
+        ``checkpoint_dir`` when it holds this run's checkpoint."""
         check_episodes(train, "train", normalizer)
         if validation:
             check_episodes(validation, "validation", normalizer)
@@ -103,8 +106,7 @@ class TrainedLearner(Learner):
             self.horizon,
             self.training,
             fingerprint={"hyperparameters": fingerprint},
-            output_dir=Path(output_dir) if output_dir is not None else None,
-            recorder=recorder,
+            checkpoint_path=self.checkpoint_path,
         )
         self._after_training(train)
         return self
@@ -145,6 +147,13 @@ class TrainedLearner(Learner):
             x = norm.states_inverse(xn).reshape(*batch, steps + 1, n)
         x[..., 0, :] = x0
         return x
+
+    @property
+    def checkpoint_path(self) -> Path | None:
+        """``<checkpoint_dir>/<name>.ckpt``, or None without a ``checkpoint_dir``."""
+        if self.checkpoint_dir is None:
+            return None
+        return Path(self.checkpoint_dir) / f"{self.name}.ckpt"
 
     # -- helpers ---------------------------------------------------------------------------------
 

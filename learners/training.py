@@ -1,4 +1,4 @@
-"""Mini-batch training shared by the DNN and Deep EDMD: Adam, early stopping, checkpoints, curves.
+"""Mini-batch training shared by the DNN and Deep EDMD: Adam, early stopping, checkpoints.
 
 What the loop guarantees:
 
@@ -6,13 +6,16 @@ What the loop guarantees:
   e from ``numpy.random.default_rng([seed, e])``; the random layer of step s from
   ``torch.Generator().manual_seed(seed * 1_000_003 + s)``. Nothing depends on global RNG state.
 - **Resumable.** Every ``checkpoint_every_steps`` the parameters, Adam's state, the position in
-  the epoch and the early-stopping state go to ``<output_dir>/<name>.ckpt`` (atomically). A new
+  the epoch and the early-stopping state go to the checkpoint file (atomically). A new
   ``fit`` with the same hyperparameters and data continues from it and ends exactly where an
   uninterrupted run ends; ``max_steps``, ``max_epochs``, ``patience`` may be raised to extend a
   finished run. Other data or hyperparameters refuse the checkpoint in one line.
 - **Never a silent NaN model.** A non-finite loss stops training with a one-line RuntimeError.
 - **Early stopping** on the validation loss every ``eval_every_steps``; the returned model is the
   best one seen (the last one when there is no validation data).
+
+The loss curves (:class:`History`) are returned, not drawn: figures and recordings are the
+caller's (``harness/training_report.py``).
 """
 
 from __future__ import annotations
@@ -26,14 +29,12 @@ import os
 from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from harness.figures import save_figure
-from harness.recorder import Recorder
 from learners.base import check, check_int, check_nonnegative, check_positive
 from learners.nets import FlatParameters
 from learners.windows import WindowData
@@ -44,16 +45,18 @@ __all__ = [
     "RandomLayerConfig",
     "TrainingConfig",
     "batch_mean_terms",
-    "plot_loss_curves",
+    "block",
     "train",
 ]
 
 VALIDATION_CHUNK = 1024  # windows per validation forward pass
 
+_Block = TypeVar("_Block")
+
 
 @dataclass(frozen=True)
 class TrainingConfig:
-    """Optimizer and budget of a trained learner (``learner.training.*`` in the config).
+    """Optimizer and budget of a trained learner: the schema of ``learner.training``.
 
     Paper values: Adam, lr 1e-4, batch 64, ~1e5 batches. ``max_epochs`` None means no epoch
     limit; at least one of ``max_steps`` / ``max_epochs`` must be set. ``num_threads`` None uses
@@ -71,33 +74,27 @@ class TrainingConfig:
     num_threads: int | None = None
     progress: bool = True
 
-    @classmethod
-    def from_config(cls, values: Mapping[str, Any] | None) -> TrainingConfig:
-        values = dict(values or {})
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"learner.training.{sorted(unknown)[0]} is not a training setting")
-        config = cls(**values)
+    def __post_init__(self) -> None:
         key = "training."
-        check_int(key + "batch_size", config.batch_size, 1)
-        check_positive(key + "lr", config.lr)
-        if config.max_steps is not None:
-            check_int(key + "max_steps", config.max_steps, 1)
-        if config.max_epochs is not None:
-            check_int(key + "max_epochs", config.max_epochs, 1)
+        check_int(key + "batch_size", self.batch_size, 1)
+        check_positive(key + "lr", self.lr)
+        if self.max_steps is not None:
+            check_int(key + "max_steps", self.max_steps, 1)
+        if self.max_epochs is not None:
+            check_int(key + "max_epochs", self.max_epochs, 1)
         check(
-            config.max_steps is not None or config.max_epochs is not None,
+            self.max_steps is not None or self.max_epochs is not None,
             key + "max_steps",
             "set when training.max_epochs is null",
-            config.max_steps,
+            self.max_steps,
         )
-        check_int(key + "patience", config.patience, 1)
-        check_int(key + "eval_every_steps", config.eval_every_steps, 1)
-        check_int(key + "checkpoint_every_steps", config.checkpoint_every_steps, 1)
-        check_int(key + "seed", config.seed, 0)
-        if config.num_threads is not None:
-            check_int(key + "num_threads", config.num_threads, 1)
-        return config
+        check_int(key + "patience", self.patience, 1)
+        check_int(key + "eval_every_steps", self.eval_every_steps, 1)
+        check_int(key + "checkpoint_every_steps", self.checkpoint_every_steps, 1)
+        check_int(key + "seed", self.seed, 0)
+        if self.num_threads is not None:
+            check_int(key + "num_threads", self.num_threads, 1)
+        check(isinstance(self.progress, bool), key + "progress", "true or false", self.progress)
 
 
 @dataclass(frozen=True)
@@ -105,26 +102,34 @@ class RandomLayerConfig:
     """The paper's robustness experiment: an extra hidden layer redrawn at every training step.
 
     W ~ I + N(0, std^2), b ~ N(0, std^2), then a ReLU (see :func:`learners.nets.random_layer`).
+    The schema of ``learner.random_layer``.
     """
 
     enabled: bool = False
     std: float = 0.1
 
-    @classmethod
-    def from_config(cls, values: Mapping[str, Any] | None) -> RandomLayerConfig:
-        values = dict(values or {})
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"learner.random_layer.{sorted(unknown)[0]} is not a setting")
-        config = cls(**values)
-        check(
-            isinstance(config.enabled, bool),
-            "random_layer.enabled",
-            "true or false",
-            config.enabled,
+    def __post_init__(self) -> None:
+        check(isinstance(self.enabled, bool), "random_layer.enabled", "true or false", self.enabled)
+        check_nonnegative("random_layer.std", self.std)
+
+
+def block(cls: type[_Block], value: _Block | Mapping[str, Any] | None, key: str) -> _Block:
+    """``learner.<key>`` as a ``cls``: built already (Hydra's ``_target_``), a plain mapping (a
+    model file's hyperparameters, a test) or None (the defaults). Unknown keys fail in one line."""
+    if isinstance(value, cls):
+        return value
+    if value is None:
+        return cls()
+    if not isinstance(value, Mapping):
+        raise ValueError(f"learner.{key} must be a mapping of settings (got {value!r})")
+    values = {k: v for k, v in value.items() if k != "_target_"}
+    names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise ValueError(
+            f"learner.{key}.{unknown[0]} is not a key of {cls.__name__} ({', '.join(names)})"
         )
-        check_nonnegative("random_layer.std", config.std)
-        return config
+    return cls(**values)
 
 
 class Objective(Protocol):
@@ -164,10 +169,12 @@ def train(
     config: TrainingConfig,
     *,
     fingerprint: Mapping[str, Any],
-    output_dir: Path | None = None,
-    recorder: Recorder | None = None,
+    checkpoint_path: Path | None = None,
 ) -> History:
-    """Train ``objective.params`` in place with Adam; leaves the best parameters in them."""
+    """Train ``objective.params`` in place with Adam; leaves the best parameters in them.
+
+    With ``checkpoint_path``, resumes from it when it exists and keeps it current.
+    """
     train_starts = train_data.window_starts(horizon)
     if len(train_starts) == 0:
         raise ValueError(
@@ -186,7 +193,6 @@ def train(
         "train": train_data.fingerprint(),
         "validation": validation_data.fingerprint() if validation_data is not None else None,
     }
-    checkpoint_path = output_dir / f"{name}.ckpt" if output_dir is not None else None
     state = _State.fresh()
     if checkpoint_path is not None and checkpoint_path.exists():
         state = _State.load(checkpoint_path, fingerprint, params, optimizer)
@@ -268,10 +274,6 @@ def train(
         save_checkpoint()
     if best is not None and len(val_starts):
         params.data.copy_(best)
-    if recorder is not None and history.step:
-        _record(recorder, name, history)
-    if output_dir is not None and history.step:
-        plot_loss_curves(history, output_dir / f"{name}_loss.png", title=name)
     return history
 
 
@@ -378,54 +380,6 @@ class _State:
 
 def _digest(fingerprint: Mapping[str, Any]) -> str:
     return hashlib.sha1(json.dumps(fingerprint, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def _record(recorder: Recorder, name: str, history: History) -> None:
-    steps = np.asarray(history.step, dtype=np.int64)
-    values = {"train": np.asarray(history.train, dtype=float)}
-    keys = sorted({k for v in history.validation for k in v})
-    for key in keys:
-        label = "validation" if key == "loss" else f"validation_{key}"
-        values[label] = np.array([v.get(key, np.nan) for v in history.validation])
-    recorder.series(f"training/{name}", steps, values, timeline="step")
-
-
-def plot_loss_curves(history: History, path: Path, title: str = "") -> Path:
-    """Training (solid) and validation (dashed) loss per batch, log scale, as in the paper."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(history.step, history.train, "-", color="C0", label="training loss")
-    if any(history.validation):
-        ax.plot(
-            history.step,
-            [v.get("loss", np.nan) for v in history.validation],
-            "--",
-            color="C0",
-            label="validation loss",
-        )
-        terms = sorted({k for v in history.validation for k in v} - {"loss"})
-        for i, key in enumerate(terms, start=1):
-            ax.plot(
-                history.step,
-                [v.get(key, np.nan) for v in history.validation],
-                "--",
-                color=f"C{i}",
-                lw=0.8,
-                label=f"validation {key}",
-            )
-    ax.set_yscale("log")
-    ax.set_xlabel("batches")
-    ax.set_ylabel("loss (normalized units)")
-    ax.set_title(f"{title} ({history.stopped})" if history.stopped else title)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return save_figure(fig, path, dpi=120)
 
 
 def default_threads() -> int:

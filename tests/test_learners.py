@@ -1,7 +1,9 @@
-"""The learner contract, for all four learners: fit, predict, save/load, configs, bad values."""
+"""The learner contract, for every learner config: fit, predict, save/load, configs, bad values."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,15 +16,24 @@ import learners
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.paths import CONF_DIR
 from harness.prediction import open_loop, rmse
-from learners import DNN, EDMD, ELMEDMD, DeepEDMD, KoopmanLearner, Learner
+from learners import (
+    DNN,
+    EDMD,
+    DeepEDMD,
+    KoopmanLearner,
+    Learner,
+    RandomFeatures,
+    ThinPlateRBF,
+)
+from learners.base import FORMAT_VERSION
 from tests.toydata import drive_episodes
 
 NAMES = ("edmd", "elm_edmd", "dnn", "deep_edmd")
 
 # Budgets small enough for a unit test (seconds), large enough to learn something.
 TINY = {
-    "edmd": lambda: EDMD(num_centers=50),
-    "elm_edmd": lambda: ELMEDMD(num_features=50),
+    "edmd": lambda: EDMD(ThinPlateRBF(num_centers=50)),
+    "elm_edmd": lambda: EDMD(RandomFeatures(num_features=50), ridge=1e-8),
     "dnn": lambda: DNN(
         hidden=[64, 64],
         horizon=20,
@@ -139,7 +150,7 @@ def test_loading_a_model_of_other_sizes_fails_in_one_line(tmp_path: Path) -> Non
         rng.random((steps, 2)),
         np.zeros((steps, 3)),
     )
-    model = EDMD(num_centers=5).fit([episode], [], MinMaxNormalizer.fit([episode]))
+    model = EDMD(ThinPlateRBF(num_centers=5)).fit([episode], [], MinMaxNormalizer.fit([episode]))
     path = model.save(tmp_path / "small.pt")
     with pytest.raises(ValueError, match="models 2 states and 2 inputs; expected 3 states") as info:
         learners.load(path)
@@ -166,25 +177,89 @@ def test_nan_in_the_training_data_is_refused_naming_the_episode(name: str, data:
     assert "\n" not in str(info.value)
 
 
-@pytest.mark.parametrize("name", NAMES)
-def test_every_learner_config_instantiates_with_the_class_defaults(name: str) -> None:
-    """conf/learner/<name>.yaml lists every hyperparameter at the paper's default value."""
+@pytest.mark.parametrize(
+    ("legacy_class", "legacy_keys", "dictionary"),
+    [
+        ("learners.edmd.EDMD", {"num_centers": 50}, ThinPlateRBF(num_centers=50)),
+        (
+            "learners.elm_edmd.ELMEDMD",
+            {"num_features": 50, "activation": "tanh", "weight_scale": 4.0, "bias_scale": 2.0},
+            RandomFeatures(num_features=50),
+        ),
+    ],
+    ids=["edmd", "elm_edmd"],
+)
+def test_a_file_from_before_dictionaries_loads_as_edmd_and_predicts_the_same(
+    legacy_class: str, legacy_keys: dict, dictionary, data: dict, tmp_path: Path
+) -> None:
+    """Format-1 files name EDMD's or ELM-EDMD's own class with flat dictionary keywords."""
+    model = EDMD(dictionary, ridge=1e-8).fit(data["train"], [], data["normalizer"])
+    payload = torch.load(model.save(tmp_path / "new.pt"), weights_only=True)
+    assert payload["version"] == FORMAT_VERSION
+    payload["class"] = legacy_class
+    payload["hyperparameters"] = {**legacy_keys, "ridge": 1e-8, "include_constant": True, "seed": 0}
+    torch.save(payload, tmp_path / "old.pt")
+    loaded = learners.load(tmp_path / "old.pt")
+    assert type(loaded) is EDMD and loaded.hyperparameters == model.hyperparameters
+    np.testing.assert_array_equal(open_loop(loaded, data["test"]), open_loop(model, data["test"]))
+
+
+@pytest.mark.parametrize("name", [*NAMES, "deep_edmd_lstsq", "deep_edmd_random_layer"])
+def test_every_learner_config_builds_a_learner_its_saved_hyperparameters_rebuild(
+    name: str,
+) -> None:
+    """What a model file stores (plain values) builds the same learner as the config did."""
     learner = instantiate(compose_learner(name))
-    assert isinstance(learner, Learner) and learner.name == name
-    assert learner.hyperparameters == type(learner)().hyperparameters
+    assert isinstance(learner, Learner)
+    saved = learner.hyperparameters
+    assert type(learner).from_hyperparameters(saved).hyperparameters == saved
+
+
+@pytest.mark.parametrize(
+    ("name", "dictionary", "size"),
+    [("edmd", ThinPlateRBF, 100), ("elm_edmd", RandomFeatures, 100)],
+)
+def test_edmd_and_elm_edmd_are_one_class_whose_dictionary_the_config_chooses(
+    name: str, dictionary: type, size: int, data: dict
+) -> None:
+    learner = instantiate(compose_learner(name))
+    assert type(learner) is EDMD and type(learner.dictionary) is dictionary
+    learner.fit(data["train"], [], data["normalizer"])
+    assert learner.A_.shape == (3 + 1 + size, 3 + 1 + size)  # [x; 1; phi(x)]
+    sin = instantiate(compose_learner("elm_edmd", "learner.dictionary.activation=sin"))
+    assert sin.dictionary.activation == "sin"
+    swapped = instantiate(
+        compose_learner(
+            "edmd",
+            "~learner.dictionary.num_centers",
+            "learner.dictionary._target_=learners.dictionaries.RandomFeatures",
+            "+learner.dictionary.num_features=7",
+        )
+    )
+    assert type(swapped.dictionary) is RandomFeatures and swapped.dictionary.num_features == 7
+
+
+def test_the_learners_package_imports_no_recorder_figures_or_config_system() -> None:
+    """Estimators take data: recording, figures and configs are the caller's."""
+    code = (
+        "import sys, learners, learners.training, learners.dictionaries; "
+        "print(sorted(m for m in ('rerun', 'matplotlib', 'hydra', 'harness.recorder') "
+        "if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
 
 
 @pytest.mark.parametrize(
     ("name", "override", "key"),
     [
-        ("edmd", "learner.num_centers=-1", "learner.num_centers"),
+        ("edmd", "learner.dictionary.num_centers=-1", "learner.dictionary.num_centers"),
         ("edmd", "learner.ridge=-1e-3", "learner.ridge"),
-        ("elm_edmd", "learner.activation=softsign", "learner.activation"),
-        ("elm_edmd", "learner.num_features=0", "learner.num_features"),
+        ("elm_edmd", "learner.dictionary.activation=softsign", "learner.dictionary.activation"),
+        ("elm_edmd", "learner.dictionary.num_features=0", "learner.dictionary.num_features"),
         ("dnn", "learner.horizon=0", "learner.horizon"),
         ("dnn", "learner.training.lr=-1e-4", "learner.training.lr"),
         ("dnn", "learner.beta.inf=-1", "learner.beta.inf"),
-        ("dnn", "+learner.training.epochs=3", "learner.training.epochs"),
         ("deep_edmd", "learner.lifted_dim=0", "learner.lifted_dim"),
         ("deep_edmd", "learner.horizon=0", "learner.horizon"),
         ("deep_edmd", "learner.training.batch_size=0", "learner.training.batch_size"),
@@ -199,3 +274,30 @@ def test_a_wrong_learner_value_names_its_key(name: str, override: str, key: str)
     error = info.value.__cause__ or info.value
     assert isinstance(error, ValueError)
     assert key in str(error) and "\n" not in str(error)
+
+
+@pytest.mark.parametrize(
+    ("name", "override"),
+    [
+        ("dnn", "+learner.training.epochs=3"),
+        ("deep_edmd", "+learner.alpha.beta=1"),
+        ("elm_edmd", "+learner.dictionary.num_centers=3"),
+    ],
+)
+def test_an_unknown_key_in_a_nested_block_is_refused_naming_it(name: str, override: str) -> None:
+    """The block's dataclass is its schema: a key it lacks fails where Hydra builds it."""
+    unknown = override.rpartition(".")[2].partition("=")[0]
+    with pytest.raises(Exception) as info:
+        instantiate(compose_learner(name, override))
+    error = info.value.__cause__ or info.value
+    assert isinstance(error, TypeError)
+    assert f"'{unknown}'" in str(error) and "\n" not in str(error)
+
+
+def test_an_unknown_key_in_a_plain_block_is_refused_naming_it() -> None:
+    """Plain mappings (model files, code) get the same schema as the configs."""
+    with pytest.raises(ValueError, match=r"learner\.training\.epochs is not a key") as info:
+        DNN(training={"epochs": 3})
+    assert "\n" not in str(info.value)
+    with pytest.raises(ValueError, match=r"learner\.training\.lr must be > 0 \(got -1\)"):
+        DNN(training={"lr": -1})

@@ -1,4 +1,4 @@
-"""EDMD and ELM-EDMD against analytic truth: exact A, B on linear systems; the MPC's contract."""
+"""EDMD with each dictionary against analytic truth: exact A, B on linear systems; MPC contract."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from harness.data.episode import Episode, MinMaxNormalizer
-from learners import EDMD, ELMEDMD, DeepEDMD
+from learners import EDMD, DeepEDMD, RandomFeatures, ThinPlateRBF
+from learners.dictionaries import ACTIVATIONS
 from learners.linalg import ridge_lstsq
 from tests.toydata import drive_episodes
 
@@ -48,24 +49,32 @@ def linear_episodes(count: int = 4, steps: int = 400, seed: int = 0) -> list[Epi
 
 
 def test_edmd_with_the_identity_lift_recovers_a_and_b_exactly() -> None:
-    model = EDMD(num_centers=0, include_constant=False, ridge=0.0)
+    model = EDMD(ThinPlateRBF(num_centers=0), include_constant=False, ridge=0.0)
     model.fit(linear_episodes(), [], NORMALIZER)
     np.testing.assert_allclose(model.A_, A_TRUE, atol=1e-9)
     np.testing.assert_allclose(model.B_, B_TRUE, atol=1e-9)
     np.testing.assert_array_equal(model.C_, np.eye(3))
 
 
+# ReLU units active on every sample are affine in x: with them [A B] is not unique, so the
+# minimum-norm solution need not be the true one (and is not); every other dictionary is.
+SMOOTH = [name for name in ACTIVATIONS if name != "relu"]
+
+
 @pytest.mark.parametrize(
-    "make",
+    "dictionary",
     [
-        lambda: EDMD(num_centers=20, ridge=0.0),
-        lambda: ELMEDMD(num_features=20, ridge=0.0),
+        ThinPlateRBF(num_centers=20),
+        *(RandomFeatures(num_features=20, activation=name) for name in SMOOTH),
     ],
-    ids=["edmd", "elm_edmd"],
+    ids=["thin_plate_rbf", *(f"random_{name}" for name in SMOOTH)],
 )
-def test_with_x_in_the_lift_the_state_rows_are_exact_and_ignore_the_observables(make) -> None:
-    """z = [x; 1; phi(x)]: x's own rows of [A B] are the true ones, zero on 1 and phi."""
-    model = make().fit(linear_episodes(), [], NORMALIZER)
+def test_with_x_in_the_lift_the_state_rows_are_exact_and_ignore_the_observables(
+    dictionary,
+) -> None:
+    """z = [x; 1; phi(x)] with any dictionary: x's own rows of [A B] are the true ones, zero on
+    1 and phi."""
+    model = EDMD(dictionary, ridge=0.0).fit(linear_episodes(), [], NORMALIZER)
     size = model.A_.shape[0]
     assert size == 3 + 1 + 20
     np.testing.assert_allclose(model.A_[:3, :3], A_TRUE, atol=1e-6)
@@ -90,18 +99,44 @@ def test_a_linear_plant_in_physical_units_is_recovered_through_the_constant_obse
             x[t + 1] = a @ x[t] + b @ u[t]
         episodes.append(Episode(f"plant_{k}", np.arange(300) * 0.01, x, u, np.zeros((300, 3))))
     normalizer = MinMaxNormalizer.fit(episodes)
-    model = EDMD(num_centers=0, ridge=0.0).fit(episodes, [], normalizer)
+    model = EDMD(ThinPlateRBF(num_centers=0), ridge=0.0).fit(episodes, [], normalizer)
     x0, inputs = episodes[0].states[0], episodes[0].inputs[:-1]
     np.testing.assert_allclose(model.predict(x0, inputs), episodes[0].states, atol=1e-8)
 
 
 def test_the_thin_plate_spline_observable_is_r2_log_r() -> None:
-    model = EDMD(num_centers=1)
-    model.centers_ = np.array([[0.2, 0.3, 0.4]])
+    rbf = ThinPlateRBF(num_centers=1)
+    rbf.centers_ = np.array([[0.2, 0.3, 0.4]])
     r = np.array([0.0, 0.5, 1.0, np.exp(0.5)])
-    x = model.centers_ + r[:, None] * np.array([0.0, 0.6, 0.8])  # unit direction
+    x = rbf.centers_ + r[:, None] * np.array([0.0, 0.6, 0.8])  # unit direction
     expected = np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0)
-    np.testing.assert_allclose(model._observables(x)[:, 0], expected, atol=1e-12)
+    np.testing.assert_allclose(rbf(x)[:, 0], expected, atol=1e-12)
+
+
+def test_random_features_are_the_activation_of_an_affine_map_drawn_in_its_scales() -> None:
+    features = RandomFeatures(num_features=500, activation="relu", weight_scale=3.0, bias_scale=0.5)
+    features.fit(np.zeros((10, 3)), np.random.default_rng(0))
+    assert features.weights_.shape == (500, 3) and features.biases_.shape == (500,)
+    assert np.abs(features.weights_).max() <= 3.0 and np.abs(features.weights_).max() > 2.9
+    assert np.abs(features.biases_).max() <= 0.5 and np.abs(features.biases_).max() > 0.49
+    x = np.array([[0.1, 0.5, 0.9]])
+    expected = np.maximum(x @ features.weights_.T + features.biases_, 0.0)
+    np.testing.assert_array_equal(features(x), expected)
+
+
+def test_the_seed_draws_the_dictionary_and_nothing_else() -> None:
+    """One seed, one draw: refits agree exactly, another seed draws other features (each
+    learner draws into its own copy of a dictionary given to several)."""
+    episodes = linear_episodes(count=2, steps=200)
+    shared = RandomFeatures(num_features=10)
+
+    def fit(seed: int) -> EDMD:
+        return EDMD(shared, seed=seed).fit(episodes, [], NORMALIZER)
+
+    first, again, other = fit(0), fit(0), fit(1)
+    np.testing.assert_array_equal(first.A_, again.A_)
+    np.testing.assert_array_equal(first.dictionary.weights_, again.dictionary.weights_)
+    assert not np.allclose(first.dictionary.weights_, other.dictionary.weights_)
 
 
 def test_ridge_lstsq_in_chunks_equals_lstsq_and_the_closed_form_ridge() -> None:
@@ -130,8 +165,8 @@ def test_koopman_learners_honour_the_mpc_contract() -> None:
     episodes = drive_episodes(3, 20.0)
     normalizer = MinMaxNormalizer.fit(episodes)
     models = [
-        EDMD(num_centers=20).fit(episodes, [], normalizer),
-        ELMEDMD(num_features=20).fit(episodes, [], normalizer),
+        EDMD(ThinPlateRBF(num_centers=20)).fit(episodes, [], normalizer),
+        EDMD(RandomFeatures(num_features=20), ridge=1e-8).fit(episodes, [], normalizer),
         DeepEDMD(
             horizon=5, prediction_output="linear", training={"max_steps": 20, "progress": False}
         ).fit(episodes, [], normalizer),

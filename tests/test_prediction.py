@@ -11,7 +11,7 @@ import pytest
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.prediction import by_episode, evaluate, robustness, windowed
 from harness.recorder import Recorder
-from learners import DNN, EDMD, Learner
+from learners import DNN, EDMD, Learner, ThinPlateRBF
 from learners.training import RandomLayerConfig
 from tests.toydata import drive_episodes
 
@@ -42,7 +42,7 @@ class Hold(Learner):
 
     name = "hold"
 
-    def fit(self, train, validation, normalizer, *, recorder=None, output_dir=None):
+    def fit(self, train, validation, normalizer):
         return self
 
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
@@ -72,7 +72,7 @@ class NoisyHold(Hold):
 def test_a_perfect_model_has_zero_rmse_in_every_metric() -> None:
     episodes = [linear_episode("train", 600, 0)]
     test = linear_episode("test", 1234, 1)
-    exact = EDMD(num_centers=0, include_constant=False, ridge=0.0).fit(episodes, [], NORMALIZER)
+    exact = EDMD(ThinPlateRBF(0), include_constant=False, ridge=0.0).fit(episodes, [], NORMALIZER)
     results = evaluate({"exact": exact}, [test], window_steps=41, window_seconds=5.0)
     metrics = results["exact"]["test"]
     assert set(metrics) == {"rmse", "rmse_window_41", "rmse_window_5s"}
@@ -94,7 +94,7 @@ def test_a_constant_offset_is_the_rmse_of_every_metric() -> None:
             out[..., 1:, :] += offset  # the first row is the measured start, as every model's
             return out
 
-    exact = EDMD(num_centers=0, include_constant=False, ridge=0.0)
+    exact = EDMD(ThinPlateRBF(0), include_constant=False, ridge=0.0)
     exact.fit([linear_episode("train", 600, 0)], [], NORMALIZER)
     test = linear_episode("test", 500, 1)
     metrics = evaluate({"shifted": Shifted(exact)}, [test], window_steps=41, window_seconds=1.0)
@@ -197,4 +197,4 @@ def test_robustness_of_a_trained_dnn_spreads_and_refuses_models_without_the_laye
     for state, low in summary["rmse_min"].items():  # every redraw predicts differently
         assert low < summary["rmse_mean"][state] < summary["rmse_max"][state]
     with pytest.raises(ValueError, match="was not trained with a random layer"):
-        robustness({"edmd": EDMD(num_centers=5).fit(episodes[:2], [], normalizer)}, episodes[2:])
+        robustness({"edmd": EDMD(ThinPlateRBF(5)).fit(episodes[:2], [], normalizer)}, episodes[2:])

@@ -30,12 +30,12 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from harness import training_report
 from harness.config import as_object
 from harness.data.collect import prepare
 from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
-from harness.metrics import write_json_atomic
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
@@ -123,7 +123,8 @@ class Pipeline:
             learner = load_learner(self.model_path)
             source = str(Path(self.model_path).resolve())
         else:
-            learner = self.learner.fit(
+            learner = training_report.fit(
+                self.learner,
                 dataset.train,
                 dataset.validation,
                 dataset.normalizer,
@@ -133,9 +134,6 @@ class Pipeline:
             source = "trained"
         fit_time = time.perf_counter() - start
         model_file = learner.save(output_dir / f"model_{self.learner_name}.pt")
-        history = getattr(learner, "history_", None)
-        if history is not None:
-            write_json_atomic(output_dir / "training_history.json", history.to_dict())
         return learner, {
             "learner": self.learner_name,
             "source": source,

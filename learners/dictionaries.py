@@ -1,0 +1,155 @@
+"""Dictionaries of observables phi(x_n) for the lifted-linear learner (:class:`learners.edmd.EDMD`).
+
+A dictionary is the one thing that distinguishes the paper's EDMD baseline from ELM-EDMD: the
+regression on z = [x_n; 1; phi(x_n)] is the same. Each dictionary is a small class built from
+its config (``learner.dictionary`` with its own ``_target_``), drawn once from the normalized
+training states by :meth:`Dictionary.fit` and then fixed. A new dictionary is one subclass here
+(or anywhere under ``learners``) plus a ``dictionary:`` block in a learner config.
+
+- :class:`ThinPlateRBF`: phi_i(x) = ||x - c_i||^2 log ||x - c_i|| (the paper's EDMD, Sec. VI),
+  centres c_i ~ N(mean, std^2) of the normalized training states, per dimension.
+- :class:`RandomFeatures`: phi(x) = sigma(W x + b), W and b uniform and never trained (the
+  paper's ELM-EDMD, an extreme learning machine's hidden layer, Huang's classic ELM). On min-max
+  normalized states in [0, 1]^3 a scale of a few puts the units' kinks and saturations inside
+  the data.
+"""
+
+from __future__ import annotations
+
+import importlib
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any, Self
+
+import numpy as np
+
+from learners.base import check_choice, check_int, check_positive
+
+__all__ = ["ACTIVATIONS", "Dictionary", "RandomFeatures", "ThinPlateRBF", "dictionary_from"]
+
+ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "tanh": np.tanh,
+    "sigmoid": lambda a: 0.5 * (1.0 + np.tanh(0.5 * a)),
+    "relu": lambda a: np.maximum(a, 0.0),
+    "sin": np.sin,
+}
+
+
+class Dictionary(ABC):
+    """Observables phi: (..., n) -> (..., K) of normalized states, drawn once from data.
+
+    Subclasses are dataclasses: their fields are the hyperparameters (the config's keys, saved
+    in the model file; ``__post_init__`` checks them); the drawn arrays are attributes ending in
+    ``_`` (what ``state`` returns, saved as tensors).
+    """
+
+    @abstractmethod
+    def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
+        """Draw the parameters from the normalized training states (M, n) with ``rng``."""
+
+    @abstractmethod
+    def __call__(self, x_n: np.ndarray) -> np.ndarray:
+        """phi(x_n): (..., n) -> (..., K)."""
+
+    @property
+    def hyperparameters(self) -> dict[str, Any]:
+        """The fields, with ``_target_`` naming the class: a config block and a file entry."""
+        target = f"{type(self).__module__}.{type(self).__qualname__}"
+        values = {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
+        return {"_target_": target, **values}
+
+    @abstractmethod
+    def state(self) -> dict[str, np.ndarray]:
+        """The drawn arrays, to save (keys must not be A, B or C)."""
+
+    @abstractmethod
+    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
+        """Restore what :meth:`state` returned."""
+
+
+def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
+    """A fresh, unfitted dictionary like ``value``: a built one (its copy, so that two learners
+    never share drawn arrays), its ``hyperparameters`` (a model file) or None (thin-plate RBFs).
+
+    Only classes under ``learners`` are built, as :func:`learners.base.load` does for learners.
+    """
+    if value is None:
+        return ThinPlateRBF()
+    values = dict(value.hyperparameters if isinstance(value, Dictionary) else value)
+    target = str(values.pop("_target_", ""))
+    module_name, _, class_name = target.rpartition(".")
+    if not module_name.startswith("learners."):
+        raise ValueError(
+            f"learner.dictionary._target_ must name a dictionary class (got {target!r})"
+        )
+    cls = getattr(importlib.import_module(module_name), class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, Dictionary)):
+        raise ValueError(f"learner.dictionary._target_ {target!r} is not a dictionary class")
+    return cls(**values)
+
+
+@dataclass(eq=False)
+class ThinPlateRBF(Dictionary):
+    """``num_centers`` thin-plate-spline radial basis functions (0 gives DMD with inputs)."""
+
+    num_centers: int = 100
+
+    def __post_init__(self) -> None:
+        self.num_centers = check_int("dictionary.num_centers", self.num_centers, 0)
+
+    def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
+        mean, std = states_n.mean(0), states_n.std(0)
+        self.centers_ = rng.normal(mean, std, size=(self.num_centers, states_n.shape[1]))
+        return self
+
+    def __call__(self, x_n: np.ndarray) -> np.ndarray:
+        r2 = np.sum((x_n[..., None, :] - self.centers_) ** 2, axis=-1)
+        # r^2 log r = r^2 log(r^2) / 2, continuous with value 0 at r = 0
+        return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"centers": self.centers_}
+
+    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
+        self.centers_ = np.asarray(state["centers"], dtype=np.float64)
+
+
+@dataclass(eq=False)
+class RandomFeatures(Dictionary):
+    """``num_features`` random units sigma(w . x + b), w ~ U(+-weight_scale), b ~ U(+-bias_scale).
+
+    Args:
+        num_features: K, the number of random hidden units.
+        activation: One of tanh, sigmoid, relu, sin.
+        weight_scale: Half-width of the uniform distribution of the input weights.
+        bias_scale: Half-width of the uniform distribution of the biases.
+    """
+
+    num_features: int = 100
+    activation: str = "tanh"
+    weight_scale: float = 4.0
+    bias_scale: float = 2.0
+
+    def __post_init__(self) -> None:
+        key = "dictionary."
+        self.num_features = check_int(key + "num_features", self.num_features, 1)
+        self.activation = check_choice(key + "activation", self.activation, tuple(ACTIVATIONS))
+        self.weight_scale = check_positive(key + "weight_scale", self.weight_scale)
+        self.bias_scale = check_positive(key + "bias_scale", self.bias_scale)
+
+    def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
+        n = states_n.shape[1]
+        self.weights_ = rng.uniform(-self.weight_scale, self.weight_scale, (self.num_features, n))
+        self.biases_ = rng.uniform(-self.bias_scale, self.bias_scale, self.num_features)
+        return self
+
+    def __call__(self, x_n: np.ndarray) -> np.ndarray:
+        return ACTIVATIONS[self.activation](x_n @ self.weights_.T + self.biases_)
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"weights": self.weights_, "biases": self.biases_}
+
+    def set_state(self, state: Mapping[str, np.ndarray]) -> None:
+        self.weights_ = np.asarray(state["weights"], dtype=np.float64)
+        self.biases_ = np.asarray(state["biases"], dtype=np.float64)
