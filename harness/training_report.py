@@ -13,8 +13,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.figures import save_figure
@@ -61,7 +61,8 @@ def record_loss_curves(recorder: Recorder, name: str, history: History) -> None:
 
 def plot_loss_curves(history: History, path: Path, title: str = "") -> Path:
     """Training (solid) and validation (dashed) loss per batch, log scale, as in the paper."""
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
     ax.plot(history.step, history.train, "-", color="C0", label="training loss")
     if any(history.validation):
         ax.plot(

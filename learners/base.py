@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from harness.data.episode import Episode, MinMaxNormalizer
+from harness.files import write_atomic
 
 __all__ = ["FORMAT", "KoopmanLearner", "Learner", "load"]
 
@@ -97,11 +98,7 @@ class Learner(ABC):
             "normalizer": self.normalizer_.to_dict(),
             "tensors": {k: torch.as_tensor(np.asarray(v)) for k, v in self._state().items()},
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        torch.save(payload, tmp)
-        tmp.replace(path)
-        return path
+        return write_atomic(path, lambda handle: torch.save(payload, handle))
 
     @classmethod
     def load(cls, path: str | Path) -> Learner:

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from harness.files import write_atomic
 from learners.base import check, check_int, check_nonnegative, check_positive
 from learners.nets import FlatParameters
 from learners.windows import WindowData
@@ -347,10 +348,7 @@ class _State:
             "best_params": self.best_params,
         }
         payload["state"]["history"] = self.history.to_dict()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
+        write_atomic(path, lambda handle: torch.save(payload, handle))
 
     @classmethod
     def load(
