@@ -22,8 +22,9 @@ setup: $(VENV)/.installed  ## create .venv and install the harness (editable) wi
 run: setup  ## run the main job (results under outputs/<date>/<time>/)
 	$(BIN)/python -m harness $(ARGS)
 
-test: setup  ## lint, then the test suite (slow tests excluded)
+test: setup  ## lint and type-check, then the test suite (slow tests excluded)
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest
 
 test-ray: setup  ## the Ray launcher's tests (installs the `ray` extra: ~60 packages, ~2 min)

@@ -18,7 +18,8 @@ from harness.files import write_atomic
 def save_arrays(path: Path, **arrays: np.ndarray) -> Path:
     """``np.savez_compressed`` through a temporary file in the same directory."""
     contents = {k: np.asarray(v) for k, v in arrays.items()}
-    return write_atomic(path, lambda handle: np.savez_compressed(handle, **contents))
+    # numpy's stubs type **kwds as allow_pickle (bool); here they are the arrays' names.
+    return write_atomic(path, lambda handle: np.savez_compressed(handle, **contents))  # type: ignore[arg-type]
 
 
 def load_arrays(path: Path) -> dict[str, np.ndarray]:

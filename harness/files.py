@@ -14,7 +14,7 @@ from typing import IO, Any
 import numpy as np
 
 
-def write_atomic(path: Path | str, write: Callable[[IO[bytes]], None]) -> Path:
+def write_atomic(path: Path | str, write: Callable[[IO[bytes]], object]) -> Path:
     """Call ``write(handle)`` on a uniquely named temporary file beside ``path``, then rename it
     over ``path``; on any failure the temporary file is removed and the error raised."""
     path = Path(path)

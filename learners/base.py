@@ -197,7 +197,7 @@ def check(condition: bool, key: str, requirement: str, value: Any) -> None:
 
 def check_int(key: str, value: Any, minimum: int) -> int:
     ok = isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= minimum
-    check(ok, key, f"an integer >= {minimum}", value)
+    check(bool(ok), key, f"an integer >= {minimum}", value)
     return int(value)
 
 

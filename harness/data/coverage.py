@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +47,7 @@ def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, floa
     }
 
 
-def plot(splits: dict[str, Sequence[Episode]], road_friction: float, path: Path) -> None:
+def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float, path: Path) -> None:
     """Like the paper's training-data figure: every path, the state distribution, a_y and u."""
     episodes = [e for split in splits.values() for e in split]
     states = np.concatenate([e.states for e in episodes])
