@@ -109,16 +109,27 @@ class EDMD(KoopmanLearner):
                 z = self._lift_n(normalizer.states(e.states))
                 v = normalizer.inputs(e.inputs)
                 for rows in row_chunks(z[:-1], _CHUNK_ROWS):
-                    w = np.hstack([z[:-1][rows], v[:-1][rows]])
-                    yield w, z[1:][rows]
+                    yield self._regression_rows(z[:-1][rows], v[:-1][rows], z[1:][rows])
 
-        theta = ridge_lstsq(pairs(), self.ridge)  # (N + m, N)
+        theta = ridge_lstsq(pairs(), self.ridge)  # (regressors, N)
         n_lift = theta.shape[1]
-        self.A_ = np.ascontiguousarray(theta[:n_lift].T)
-        self.B_ = np.ascontiguousarray(theta[n_lift:].T)
+        self._set_matrices(theta.T)
         n = normalizer.state_min.shape[0]
         self.C_ = np.eye(n, n_lift)
         return self
+
+    def _regression_rows(
+        self, z: np.ndarray, v: np.ndarray, z_next: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Regressors w_k = [z_k; v_k] and targets z_{k+1} of rows k (a subclass, such as
+        :class:`learners.bilinear.BilinearEDMD`, adds columns or changes the target)."""
+        return np.hstack([z, v]), z_next
+
+    def _set_matrices(self, theta: np.ndarray) -> None:
+        """Read the fitted matrices off Theta^T (N, regressors): here [A B]."""
+        n_lift = theta.shape[0]
+        self.A_ = np.ascontiguousarray(theta[:, :n_lift])
+        self.B_ = np.ascontiguousarray(theta[:, n_lift:])
 
     def lift(self, x: np.ndarray) -> np.ndarray:
         return self._lift_n(self.normalizer_.states(np.asarray(x, dtype=np.float64)))
