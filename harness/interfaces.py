@@ -1,5 +1,7 @@
 """The three contracts of the harness, written down once: a plant, a lifted model, a controller.
 
+(:class:`BilinearModel` refines the lifted model: what sets a bilinear one apart from a linear one.)
+
 Everything that steps a car (data collection, characterization, closed-loop tracking) is typed
 against :class:`Plant`; every MPC reads a learner through :class:`LiftedModel`; every rollout
 drives a :class:`Controller`, whose ``act`` returns the input *and* a :class:`StepInfo`, so no
@@ -67,6 +69,20 @@ class LiftedModel(Protocol):
     def lift(self, x: np.ndarray) -> np.ndarray:
         """z = lift(x) for physical states x (..., n) -> (..., N)."""
         ...
+
+
+@runtime_checkable
+class BilinearModel(LiftedModel, Protocol):
+    """A lifted model whose input also multiplies the lifted state (bilinear Koopman)::
+
+        z⁺ = A_ z + B_ v + Σⱼ (vⱼ − v0_ⱼ) H_[j] z,   v0_ = normalizer_.inputs(0)
+
+    It has every member of :class:`LiftedModel`, but is not one: an MPC that reads only
+    ``A_`` and ``B_`` would silently drop ``H_``. Check for it before treating a model as linear.
+    """
+
+    H_: np.ndarray  # (m, N, N)
+    v0_: np.ndarray  # (m,)
 
 
 @dataclass(frozen=True)

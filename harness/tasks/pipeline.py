@@ -8,6 +8,10 @@ Sections written to ``metrics.json``:
   and over re-initialised windows (see ``harness/prediction.py``);
 - ``robustness`` (learners trained with ``random_layer.enabled``): per test episode the RMSE's
   mean, std, min and max over ``robustness_repeats`` predictions;
+- ``prediction.step_response``: steering and throttle steps from straight driving, the model
+  against the plant at 0.3 s and 1.5 s (see ``harness/step_response.py``);
+- ``spectrum``: the eigenvalues of a Koopman model's state matrices and the modes outside the
+  unit circle, named (see ``harness/spectrum.py``); a bilinear model is not tracked (below);
 - ``tracking``: DE-MPC on the plant (Koopman learners only). The top-level keys
   (``rmse``, ``solve_time_ms``, ``deadline_misses``, ``solver_failures``) are the paper's
   experiment, tracking the first reference (the first test episode); ``tracking.references``
@@ -30,18 +34,19 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from harness import training_report
+from harness import spectrum, step_response, training_report
 from harness.config import as_object
 from harness.data.collect import prepare
 from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
+from harness.interfaces import BilinearModel, LiftedModel
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
 from harness.references import Reference
 from harness.tracking import track
-from learners.base import KoopmanLearner, Learner
+from learners.base import Learner
 from learners.base import load as load_learner
 
 log = logging.getLogger(__name__)
@@ -95,6 +100,10 @@ class Pipeline:
         sections: dict[str, Any] = {"data": data_metrics}
         learner, sections["training"] = self._learner(dataset, recorder, output_dir)
         sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
+        sections["prediction"]["step_response"] = self._step_response(
+            learner, plant, recorder, output_dir
+        )
+        sections["spectrum"] = self._spectrum(learner, plant.dt, recorder, output_dir)
         if getattr(getattr(learner, "random_layer", None), "enabled", False):
             repeated = robustness(
                 {self.learner_name: learner},
@@ -174,8 +183,9 @@ class Pipeline:
         the first controller's run of the first reference is the top level."""
         if not self.controllers or not self.references:
             return None
-        if not isinstance(learner, KoopmanLearner):
-            return {"skipped": f"{self.learner_name} is not a lifted-linear model"}
+        reason = _not_lifted_linear(learner)
+        if reason:
+            return {"skipped": f"{self.learner_name} {reason}"}
         targets = {
             name: (reference.label(name, episodes), reference.build(plant.dt, episodes))
             for name, reference in self.references.items()
@@ -208,6 +218,41 @@ class Pipeline:
             "controllers": by_controller,
         }
 
+    def _step_response(
+        self, learner: Learner, plant: Sedan, recorder: Recorder, output_dir: Path
+    ) -> dict[str, Any]:
+        """``prediction.step_response.<case>``: steering and throttle steps from straight
+        driving, the model's open-loop prediction against the plant's (harness/step_response.py)."""
+        results = step_response.evaluate(
+            {self.learner_name: learner}, plant, recorder=recorder, output_dir=output_dir
+        )
+        return results[self.learner_name]
+
+    def _spectrum(
+        self, learner: Learner, dt: float, recorder: Recorder, output_dir: Path
+    ) -> dict[str, Any]:
+        """``spectrum``: the eigenvalues of a Koopman model's state matrices, unstable modes
+        named (harness/spectrum.py), and ``spectrum.png``."""
+        if not isinstance(learner, LiftedModel):
+            return {"skipped": f"{self.learner_name} is not a lifted model"}
+        metrics, eigenvalues = spectrum.spectrum(learner, dt)
+        spectrum.record_spectrum(recorder, eigenvalues)
+        spectrum.plot_spectrum(eigenvalues, output_dir / "spectrum.png", title=self.learner_name)
+        modes = metrics["unstable_modes"]
+        if modes:
+            fastest = min(modes, key=lambda mode: mode["doubling_time_s"])
+            log.warning(
+                "%s: %d modes outside the unit circle (spectrum.unstable_modes); the fastest, "
+                "|λ| = %.6f, doubles in %.3g s (%s, at %s)",
+                self.learner_name,
+                len(modes),
+                fastest["abs"],
+                fastest["doubling_time_s"],
+                fastest["dominant"],
+                fastest["matrix"],
+            )
+        return metrics
+
     def _generalize(
         self,
         name: str,
@@ -227,6 +272,17 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
+
+
+def _not_lifted_linear(learner: Learner) -> str | None:
+    """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
+    :class:`~harness.interfaces.LiftedModel`'s ``A_`` and ``B_``, and a bilinear model has both
+    but would lose its ``H_`` there."""
+    if isinstance(learner, BilinearModel):
+        return "is bilinear (z+ = A z + B v + sum_j vbar_j H_j z); DE-MPC would ignore its H_"
+    if not isinstance(learner, LiftedModel):
+        return "is not a lifted-linear model"
+    return None
 
 
 def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str, Any]:
