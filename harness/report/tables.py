@@ -15,6 +15,8 @@ from typing import Any
 from harness.report.jobs import Run, common_overrides, variant
 
 STATES = ("vx", "vy", "yaw_rate")
+# Entries of a job's ``prediction`` section that are not test episodes.
+_NOT_EPISODES = frozenset({"step_response"})
 
 
 @dataclass
@@ -73,7 +75,9 @@ def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
         ["learner", "plant", "variant", "test episode", "jobs", *STATES],
     )
     for (learner, plant, varied), members in _group(jobs, _learner, _plant).items():
-        episodes = sorted({e for j in members for e in (_get(j.metrics, "prediction") or {})})
+        episodes = sorted(
+            {e for j in members for e in (_get(j.metrics, "prediction") or {})} - _NOT_EPISODES
+        )
         for episode in episodes:
             values = [_get(j.metrics, "prediction", episode, metric) for j in members]
             present = [v for v in values if v]
@@ -193,7 +197,8 @@ def robustness_table(jobs: list[Run]) -> Table:
 
 def _mean_prediction(section: Mapping[str, Any], state: str) -> float | None:
     """Open-loop RMSE of one state averaged over a section's test episodes."""
-    per_episode = [_get(v, "rmse", state) for v in (section.get("prediction") or {}).values()]
+    episodes = section.get("prediction") or {}
+    per_episode = [_get(v, "rmse", state) for e, v in episodes.items() if e not in _NOT_EPISODES]
     numbers = [v for v in per_episode if v is not None]
     return sum(numbers) / len(numbers) if numbers else None
 
@@ -260,6 +265,71 @@ def generalization_table(jobs: list[Run]) -> Table:
     return table
 
 
+def step_response_table(jobs: list[Run]) -> Table:
+    """Every step case of every learner: the plant's and the model's output, and the relative
+    error of the model's response, at 0.3 s and 1.5 s after the step (mean ± std over jobs)."""
+    times = ("at_300ms", "at_1500ms")
+    table = Table(
+        "Step responses from straight driving: yaw rate (rad/s) after a steering-wheel step, vx "
+        "(m/s) after a throttle step; relative error of the model's response (change since the "
+        "step) against the plant's; — where a model diverged",
+        ["learner", "variant", "case", "jobs"]
+        + [f"{quantity} {t.removeprefix('at_')}" for t in times for quantity in _STEP_QUANTITIES],
+    )
+    for (learner, varied), members in _group(jobs, _learner).items():
+        sections = [_get(j.metrics, "prediction", "step_response") or {} for j in members]
+        cases = list(dict.fromkeys(case for section in sections for case in section))
+        for case in cases:
+            present = [s[case] for s in sections if isinstance(s.get(case), Mapping)]
+            table.rows.append(
+                [learner, varied or "—", case, str(len(present))]
+                + [
+                    _mean_std(_get(run, t, quantity) for run in present)
+                    for t in times
+                    for quantity in _STEP_QUANTITIES
+                ]
+            )
+    return table
+
+
+_STEP_QUANTITIES = ("plant", "model", "relative_error")
+
+
+def spectrum_table(jobs: list[Run]) -> Table:
+    """The largest eigenvalue modulus of every Koopman model and its modes outside the unit
+    circle: how many, and the fastest-growing one of the lowest seed, named."""
+    table = Table(
+        "Spectrum: largest |eigenvalue| of the state matrices (a bilinear model's at zero input "
+        "and at the corners of the input box), modes outside the unit circle (|λ| > 1 + 1e-6), "
+        "and the fastest-growing one (lowest seed)",
+        ["learner", "variant", "jobs", "max |λ|", "unstable modes", "fastest unstable mode"],
+    )
+    for (learner, varied), members in _group(jobs, _learner).items():
+        sections = [
+            (j.seed, s)
+            for j in members
+            if isinstance(s := _get(j.metrics, "spectrum"), Mapping) and "max_abs_eigenvalue" in s
+        ]
+        if not sections:
+            continue
+        modes = min(sections, key=lambda pair: pair[0])[1].get("unstable_modes") or []
+        fastest = min(modes, key=lambda mode: mode.get("doubling_time_s") or math.inf, default=None)
+        table.rows.append(
+            [
+                learner,
+                varied or "—",
+                str(len(sections)),
+                _mean_std(s.get("max_abs_eigenvalue") for _, s in sections),
+                _mean_std(len(s.get("unstable_modes") or []) for _, s in sections),
+                "—"
+                if fastest is None
+                else f"|λ| {fastest['abs']:.6f}, doubles in {fastest['doubling_time_s']:.3g} s, "
+                f"{fastest['dominant']} at {fastest['matrix']}",
+            ]
+        )
+    return table
+
+
 def failures_table(jobs: list[Run]) -> Table:
     table = Table("Jobs that did not finish", ["job", "reason"])
     for job in jobs:
@@ -280,6 +350,8 @@ def tables(runs: list[Run]) -> dict[str, Table]:
         "tracking": tracking_table(finished),
         "robustness": robustness_table(finished),
         "generalization": generalization_table(finished),
+        "step_response": step_response_table(finished),
+        "spectrum": spectrum_table(finished),
         "training": training_table(finished),
         "failures": failures_table(runs),
     }
