@@ -11,9 +11,10 @@ find the pedal that holds the speed. At t0 that pedal is frozen and the step is 
 steering wheel to ``step`` degrees, or the pedal raised by ``step``); from the state at t0 the
 model predicts the response open loop under exactly the inputs the plant got. Compared at
 0.3 s (the transient) and 1.5 s (close to steady state) after the step: the yaw rate for
-steering steps, vx for the throttle step. ``relative_error`` is (model - plant) / |plant| of
-the *response*, the change of the output since t0 (for the yaw rate from straight driving that
-is the yaw rate itself; vx's response is its increase). A diverged prediction gives inf (null
+steering steps, vx for the throttle step. ``relative_error`` is model / plant - 1 of the
+*response*, the change of the output since t0 (for the yaw rate from straight driving that is
+the yaw rate itself; vx's response is its increase): 0 is exact, -1 a model that does not
+respond, below -1 one that responds the wrong way, whatever the step's direction. A diverged prediction gives inf (null
 in ``metrics.json``).
 """
 
@@ -154,7 +155,7 @@ def _compare(response: PlantResponse, predicted: np.ndarray) -> dict[str, Any]:
         model_value = float(predicted[row, column])
         plant_change, model_change = plant_value - start, model_value - start
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            error = (model_change - plant_change) / abs(plant_change)
+            error = model_change / plant_change - 1.0
         result[f"at_{round(t * 1000)}ms"] = {
             "plant": plant_value,
             "model": model_value if np.isfinite(model_value) else np.inf,

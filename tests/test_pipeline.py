@@ -67,7 +67,7 @@ def edmd_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict
 
 def test_metrics_follow_the_public_contract(edmd_run) -> None:
     _, run_dir, metrics = edmd_run
-    assert set(metrics) == {"data", "training", "prediction", "tracking"}
+    assert set(metrics) == {"data", "training", "prediction", "spectrum", "tracking"}
     (test_episode,) = metrics["data"]["split"]["test"]
     rmse = metrics["prediction"][test_episode]["rmse"]
     assert set(rmse) == {"vx", "vy", "yaw_rate"} and all(v >= 0 for v in rmse.values())
@@ -86,8 +86,16 @@ def test_metrics_follow_the_public_contract(edmd_run) -> None:
         "tracking_de_mpc_test_episode.png",
         "tracking_de_mpc_test_episode.npz",
         f"prediction_{test_episode}.npz",
+        "step_response.png",
+        "step_response.npz",
+        "spectrum.png",
     ):
         assert (run_dir / figure).exists(), figure
+    steps = metrics["prediction"]["step_response"]
+    assert len(steps) == 8 and set(steps["steer+20deg_22mps"]) >= {"at_300ms", "at_1500ms"}
+    assert set(steps["throttle+0.1_10mps"]["at_300ms"]) == {"plant", "model", "relative_error"}
+    assert metrics["spectrum"]["max_abs_eigenvalue"] > 0
+    assert isinstance(metrics["spectrum"]["unstable_modes"], list)
 
 
 def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
@@ -151,6 +159,17 @@ def test_a_non_koopman_learner_skips_tracking_and_says_why(tmp_path: Path) -> No
         "learner.training.eval_every_steps=10",
     )
     assert "not a lifted-linear model" in metrics["tracking"]["skipped"]
+    assert "not a lifted model" in metrics["spectrum"]["skipped"]
+    assert len(metrics["prediction"]["step_response"]) == 8  # every learner meets the steps
+
+
+def test_a_bilinear_model_is_evaluated_but_not_tracked_with_its_h_left_out(edmd_run) -> None:
+    tmp, _, _ = edmd_run
+    metrics = run_main(tmp, tmp / "bilinear", "learner=bilinear_edmd")
+    assert "bilinear" in metrics["tracking"]["skipped"] and "H_" in metrics["tracking"]["skipped"]
+    assert "zero input" in metrics["spectrum"]["matrices"]  # and the input box's corners
+    assert len(metrics["spectrum"]["matrices"]) == 5
+    assert len(metrics["prediction"]["step_response"]) == 8
 
 
 def test_generalization_evaluates_the_model_on_other_plants_at_every_horizon(
