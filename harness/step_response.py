@@ -14,8 +14,8 @@ model predicts the response open loop under exactly the inputs the plant got. Co
 steering steps, vx for the throttle step. ``relative_error`` is model / plant - 1 of the
 *response*, the change of the output since t0 (for the yaw rate from straight driving that is
 the yaw rate itself; vx's response is its increase): 0 is exact, -1 a model that does not
-respond, below -1 one that responds the wrong way, whatever the step's direction. A diverged prediction gives inf (null
-in ``metrics.json``).
+respond, below -1 one that responds the wrong way, whatever the step's direction. A diverged
+prediction gives inf (null in ``metrics.json``).
 """
 
 from __future__ import annotations

@@ -169,8 +169,10 @@ def test_the_report_has_a_row_per_learner_and_case_and_leaves_the_steps_out_of_p
     assert row[:4] == ["edmd", "—", "steer+20deg_22mps", "2"]
     assert row[4:7] == ["0.1 ± 0", "0.05 ± 0", "-0.5"]  # the diverged job adds no error
     assert row[7:] == ["—", "—", "—"]  # no job reported 1.5 s
-    (spectral,) = spectrum_table(jobs).rows
+    table = spectrum_table(jobs)
+    assert all("|" not in cell for cell in [*table.columns, *table.rows[0]])  # Markdown-safe
+    (spectral,) = table.rows
     assert spectral[:5] == ["edmd", "—", "2", "1.001 ± 0", "2 ± 1.4"]
-    assert spectral[5] == "|λ| 1.001000, doubles in 6.9 s, vx at A"
+    assert spectral[5] == "abs λ 1.001000, doubles in 6.9 s, vx at A"
     (episode,) = prediction_table(jobs).rows
     assert episode[3] == "episode_0000"

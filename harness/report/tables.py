@@ -297,12 +297,13 @@ _STEP_QUANTITIES = ("plant", "model", "relative_error")
 
 def spectrum_table(jobs: list[Run]) -> Table:
     """The largest eigenvalue modulus of every Koopman model and its modes outside the unit
-    circle: how many, and the fastest-growing one of the lowest seed, named."""
+    circle: how many, and the fastest-growing one of the lowest seed, named (no "|" in a cell:
+    it would split a Markdown table)."""
     table = Table(
         "Spectrum: largest |eigenvalue| of the state matrices (a bilinear model's at zero input "
-        "and at the corners of the input box), modes outside the unit circle (|λ| > 1 + 1e-6), "
+        "and at the corners of the input box), modes outside the unit circle (abs λ > 1 + 1e-6), "
         "and the fastest-growing one (lowest seed)",
-        ["learner", "variant", "jobs", "max |λ|", "unstable modes", "fastest unstable mode"],
+        ["learner", "variant", "jobs", "max abs λ", "unstable modes", "fastest unstable mode"],
     )
     for (learner, varied), members in _group(jobs, _learner).items():
         sections = [
@@ -323,7 +324,7 @@ def spectrum_table(jobs: list[Run]) -> Table:
                 _mean_std(len(s.get("unstable_modes") or []) for _, s in sections),
                 "—"
                 if fastest is None
-                else f"|λ| {fastest['abs']:.6f}, doubles in {fastest['doubling_time_s']:.3g} s, "
+                else f"abs λ {fastest['abs']:.6f}, doubles in {fastest['doubling_time_s']:.3g} s, "
                 f"{fastest['dominant']} at {fastest['matrix']}",
             ]
         )
