@@ -114,6 +114,12 @@ class Learner(ABC):
         return cls(**hyperparameters)
 
     @property
+    def redraws_random_layer(self) -> bool:
+        """Whether ``predict(..., random_layer_seed=s)`` draws a fresh random layer each call (the
+        paper's robustness experiment): only such learners get repeated predictions."""
+        return False
+
+    @property
     def hyperparameters(self) -> dict[str, Any]:
         """The constructor keywords this learner was built with (what its config holds)."""
         return dict(self._hyperparameters)

@@ -111,6 +111,10 @@ class TrainedLearner(Learner):
         self._after_training(train)
         return self
 
+    @property
+    def redraws_random_layer(self) -> bool:
+        return self.random_layer.enabled
+
     def predict(
         self, x0: np.ndarray, inputs: np.ndarray, *, random_layer_seed: int | None = None
     ) -> np.ndarray:

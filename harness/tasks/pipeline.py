@@ -95,7 +95,7 @@ class Pipeline:
         sections: dict[str, Any] = {"data": data_metrics}
         learner, sections["training"] = self._learner(dataset, recorder, output_dir)
         sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
-        if getattr(getattr(learner, "random_layer", None), "enabled", False):
+        if learner.redraws_random_layer:
             repeated = robustness(
                 {self.learner_name: learner},
                 dataset.test,
