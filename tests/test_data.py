@@ -246,5 +246,6 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     assert {n: (target / f"{n}.npz").stat().st_mtime_ns for n in kept} == stamps
     original, finished = load(directory), load(target)
     assert finished.manifest["split"] == original.manifest["split"]
+    assert (target / "manifest.json").read_bytes() == (directory / "manifest.json").read_bytes()
     for a, b in zip(finished.episodes(), original.episodes(), strict=True):
         np.testing.assert_array_equal(a.inputs, b.inputs)
