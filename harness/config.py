@@ -111,10 +111,11 @@ def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
         if not isinstance(child, (DictConfig, ListConfig)):
             continue
         structured = dataclasses.is_dataclass(OmegaConf.get_type(child))
-        if isinstance(child, DictConfig) and "_target_" in child and not structured:
-            if full_key != "task":  # the task is built by the app, with the plant
-                _build(child, full_key)
-                continue
+        # The task is built by the app, with the plant; the parts it holds are built here.
+        target = isinstance(child, DictConfig) and "_target_" in child and not structured
+        if target and full_key != "task":
+            _build(child, full_key)  # type: ignore[arg-type]
+            continue
         if not structured:
             _build_targets(child, full_key)
 
@@ -186,7 +187,7 @@ def _periods(node: Any, path: str) -> list[tuple[str, float]]:
     found: list[tuple[str, float]] = []
     if not isinstance(node, DictConfig):
         return found
-    for key in node:
+    for key in map(str, node):
         if OmegaConf.is_interpolation(node, key) or OmegaConf.is_missing(node, key):
             continue
         value, full_key = node[key], f"{path}.{key}"

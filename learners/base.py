@@ -233,9 +233,7 @@ def check_same_learner(loaded: Learner, configured: Learner, source: str, name: 
 def _identity(hyperparameters: Mapping[str, Any]) -> dict[str, Any]:
     values = dict(hyperparameters)
     if isinstance(values.get("training"), Mapping):
-        values["training"] = {
-            k: v for k, v in values["training"].items() if k not in RUN_SETTINGS
-        }
+        values["training"] = {k: v for k, v in values["training"].items() if k not in RUN_SETTINGS}
     return values
 
 
