@@ -247,11 +247,11 @@ def test_a_dataset_in_which_the_car_never_moved_is_refused(tmp_path: Path) -> No
 
 
 def test_edmd_refuses_fewer_pairs_than_unknowns() -> None:
-    (episode,) = drive_episodes(1, duration_s=0.08)  # 8 frames, 7 pairs
+    (episode,) = drive_episodes(1, duration_s=0.08)  # 9 frames, 8 pairs
     normalizer = MinMaxNormalizer.fit([episode])
-    with pytest.raises(ValueError, match=r"106 unknowns per row of \[A B\] but .* only 7"):
+    with pytest.raises(ValueError, match=r"106 unknowns per row of \[A B\] but .* only 8 one-step"):
         EDMD().fit([episode], [], normalizer)
-    EDMD(ThinPlateRBF(0)).fit([episode], [], normalizer)  # DMD: 6 unknowns, 7 pairs
+    EDMD(ThinPlateRBF(0)).fit([episode], [], normalizer)  # DMD: 6 unknowns, 8 pairs
 
 
 # -- a model file is the configured learner, or refused (point 8) -----------------------------
