@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import re
+import types
+import typing
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from hydra.core.config_store import ConfigStore
 from hydra.errors import InstantiationException
-from hydra.utils import instantiate
+from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from harness.data.store import DataConfig
@@ -87,6 +90,8 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
         ):
             continue
         child = node[key]
+        if isinstance(child, float) and not math.isfinite(child):
+            raise ValueError(f"{full_key} must be finite (got {child})")  # no key means NaN
         if isinstance(child, (DictConfig, ListConfig)):
             _validate(child, full_key, in_schema or structured)
     if structured and not in_schema:
@@ -116,6 +121,8 @@ def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
         if target and full_key != "task":
             _build(child, full_key)  # type: ignore[arg-type]
             continue
+        if target:
+            _check_argument_types(child, full_key)  # type: ignore[arg-type]
         if not structured:
             _build_targets(child, full_key)
 
@@ -123,6 +130,7 @@ def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
 def _build(node: DictConfig, path: str) -> None:
     """Instantiate ``node``; its error, whichever nested block raised it, as one line naming
     the full key."""
+    _check_argument_types(node, path)
     try:
         instantiate(node)
     except Exception as error:  # a config's own check, or a wrong keyword: both the user's
@@ -141,6 +149,43 @@ def _build(node: DictConfig, path: str) -> None:
             raise ValueError(f"unknown key {where}.{unknown.group(1)}") from None
         target = OmegaConf.select(node, where[len(path) + 1 :]) if where != path else node
         raise ValueError(_rekeyed(message, where, target)) from None
+
+
+def _check_argument_types(node: DictConfig, path: str) -> None:
+    """Numbers where the target's signature says ``int`` or ``float``, booleans for ``bool``:
+    ``speed_mps=abc`` names its key here, not as a ``TypeError`` from inside the class. Nested
+    ``_target_`` blocks are checked the same way; keys of other types are the class's."""
+    try:
+        target = get_object(str(node._target_))
+        hints = typing.get_type_hints(
+            target if dataclasses.is_dataclass(target) else target.__init__
+        )
+    except Exception:  # not importable or no resolvable hints: instantiate reports it
+        return
+    for key in map(str, node):
+        if key.startswith("_") or OmegaConf.is_interpolation(node, key) or key not in hints:
+            continue
+        value, full_key = node[key], f"{path}.{key}"
+        if isinstance(value, DictConfig) and "_target_" in value:
+            _check_argument_types(value, full_key)
+            continue
+        kinds = _scalar_kinds(hints[key])
+        if kinds is None or (value is None and type(None) in kinds):
+            continue
+        if bool in kinds and not kinds - {bool, type(None)}:
+            if not isinstance(value, bool):
+                raise ValueError(f"{full_key} must be true or false (got {value!r})")
+        elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"{full_key} must be a number (got {value!r})")
+
+
+def _scalar_kinds(hint: Any) -> set[type] | None:
+    """{int, float, bool, NoneType} a hint allows, or None when it allows anything else too."""
+    options = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
+    if typing.get_origin(hint) is typing.Union:
+        options = typing.get_args(hint)
+    kinds = set(options)
+    return kinds if kinds and kinds <= {int, float, bool, type(None)} else None
 
 
 def _rekeyed(message: str, path: str, node: Any) -> str:

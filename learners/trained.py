@@ -173,6 +173,7 @@ class TrainedLearner(Learner):
             for key, value in self.hyperparameters.items()
             if key != "horizon" and isinstance(value, int | list) and not isinstance(value, bool)
         ]
+        sizes.append("learner.training.batch_size")
         check_memory(" / ".join(sizes), what, 4 * (4 * parameters + activations))
 
     @property

@@ -176,7 +176,11 @@ def test_a_rerun_of_a_failed_job_leaves_no_stale_error(tmp_path: Path) -> None:
     assert failed.returncode == 2 and (run_dir / "error.json").exists()
     assert read_run(run_dir).error is not None
     again, _ = run_harness(
-        tmp_path, "task=collect", "data.min_steps=100", "data.max_steps=150", f"hydra.run.dir={run_dir}"
+        tmp_path,
+        "task=collect",
+        "data.min_steps=100",
+        "data.max_steps=150",
+        f"hydra.run.dir={run_dir}",
     )
     assert again.returncode == 0, again.stderr[-2000:]
     assert not (run_dir / "error.json").exists()
@@ -242,7 +246,7 @@ def test_a_dataset_in_which_the_car_never_moved_is_refused(tmp_path: Path) -> No
     assert abs(x[0]) < 1e-3  # the plant does not diverge: it does not move
     train = [_standing("episode_0000", 400)]
     dataset = Dataset(tmp_path, {}, train, train, train, MinMaxNormalizer.fit(train))
-    with pytest.raises(ValueError, match="never reached 1.0 m/s.*plant.chassis.sprung_mass_kg"):
+    with pytest.raises(ValueError, match=r"never reached 1.0 m/s.*plant.chassis.sprung_mass_kg"):
         check_training_data(dataset)
 
 
@@ -277,14 +281,14 @@ def test_a_model_file_of_another_learner_is_refused_naming_both(edmd_file: Path)
 
 
 def test_a_model_file_with_other_hyperparameters_is_refused(edmd_file: Path) -> None:
-    with pytest.raises(ValueError, match="learner.seed=0, but learner=edmd sets learner.seed=1"):
+    with pytest.raises(ValueError, match=r"learner.seed=0, but learner=edmd sets learner.seed=1"):
         _pipeline(EDMD(ThinPlateRBF(10), seed=1), "edmd", edmd_file)
-    with pytest.raises(ValueError, match="learner.dictionary.num_centers=10"):
+    with pytest.raises(ValueError, match=r"learner.dictionary.num_centers=10"):
         _pipeline(EDMD(ThinPlateRBF(100)), "edmd", edmd_file)
     assert _pipeline(EDMD(ThinPlateRBF(10)), "edmd", edmd_file).loaded is not None
 
 
 def test_the_qp_size_check_lets_the_papers_horizons_pass() -> None:
     DEMPCConfig(Np=60, Nc=50)
-    with pytest.raises(ValueError, match="controller.Np and controller.Nc"):
+    with pytest.raises(ValueError, match=r"controller.Np and controller.Nc"):
         DEMPCConfig(Np=10**12, Nc=7)

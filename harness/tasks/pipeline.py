@@ -25,6 +25,7 @@ Beside ``metrics.json`` it leaves the arrays behind its figures (``prediction_<e
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -86,19 +87,21 @@ class Pipeline:
         # Both before any data: a model file of another learner, a size beyond this machine.
         self.loaded = self._load(model_path, learner, learner_name)
         if self.loaded is None:
-            learner.check_size(self.data.max_steps)
-        if prediction_window_steps < 1 or prediction_window_s <= 0:
-            raise ValueError(
-                "task.prediction_window_steps and task.prediction_window_s must be > 0"
-            )
+            try:
+                learner.check_size(self.data.max_steps)
+            except ValueError as error:
+                steps = self.data.max_steps
+                raise ValueError(f"{error} (drives of up to data.max_steps={steps})") from None
+        _check_count("task.prediction_window_steps", prediction_window_steps)
+        if not (math.isfinite(prediction_window_s) and prediction_window_s > 0):
+            raise ValueError(f"task.prediction_window_s must be > 0 (got {prediction_window_s})")
         for name, reference in (references or {}).items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
-        self.window_steps, self.window_s = prediction_window_steps, prediction_window_s
+        self.window_steps, self.window_s = int(prediction_window_steps), prediction_window_s
         self.references = dict(references or {})
-        if robustness_repeats < 1:
-            raise ValueError(f"task.robustness_repeats must be >= 1 (got {robustness_repeats})")
-        self.robustness_repeats = robustness_repeats
+        _check_count("task.robustness_repeats", robustness_repeats)
+        self.robustness_repeats = int(robustness_repeats)
 
     @staticmethod
     def _load(path: str | None, learner: Learner, learner_name: str) -> Learner | None:
@@ -248,6 +251,12 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
+
+
+def _check_count(key: str, value: float) -> None:
+    """A whole number >= 1 (a float from the command line, ``1e3``, may say one)."""
+    if not (math.isfinite(value) and value >= 1 and float(value).is_integer()):
+        raise ValueError(f"{key} must be a whole number >= 1 (got {value})")
 
 
 def check_training_data(dataset: Dataset) -> None:
