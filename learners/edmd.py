@@ -141,7 +141,8 @@ class EDMD(KoopmanLearner):
         width = 2 * self.lifted_dim(n) + m
         floats = episode_frames * (self.dictionary.floats_per_row(n) + 2 * self.lifted_dim(n))
         floats += 2 * (width + _CHUNK_ROWS) * width
-        check_memory(f"learner.{key}", f"EDMD with {size} observables", 8 * floats)
+        what = f"EDMD with {size} observables on drives of {episode_frames} steps (data.max_steps)"
+        check_memory(f"learner.{key}", what, 8 * floats)
 
     def _check_enough_pairs(self, pairs: int, n: int, m: int) -> None:
         """Fewer one-step pairs than the N + m unknowns of each row of [A B] leave the least

@@ -107,9 +107,12 @@ def build_as_the_app(*overrides: str) -> None:
         # Sizes no machine has, refused before any data (point 10).
         (
             ["learner=edmd", "learner.dictionary.num_centers=1000000000"],
-            "learner.dictionary.num_centers: EDMD with 1000000000 observables needs at least",
+            "learner.dictionary.num_centers: EDMD with 1000000000 observables on drives of 400",
         ),
-        (["learner=dnn", "learner.hidden=[1000000000]"], "learner.hidden: dnn with"),
+        (
+            ["learner=dnn", "learner.hidden=[1000000000]"],
+            "learner.hidden / learner.training.batch_size: dnn with",
+        ),
         (
             ["learner=deep_edmd", "learner.lifted_dim=1000000000"],
             "learner.lifted_dim / learner.encoder_hidden / learner.decoder_hidden",

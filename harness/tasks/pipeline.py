@@ -87,11 +87,7 @@ class Pipeline:
         # Both before any data: a model file of another learner, a size beyond this machine.
         self.loaded = self._load(model_path, learner, learner_name)
         if self.loaded is None:
-            try:
-                learner.check_size(self.data.max_steps)
-            except ValueError as error:
-                steps = self.data.max_steps
-                raise ValueError(f"{error} (drives of up to data.max_steps={steps})") from None
+            learner.check_size(self.data.max_steps)
         _check_count("task.prediction_window_steps", prediction_window_steps)
         if not (math.isfinite(prediction_window_s) and prediction_window_s > 0):
             raise ValueError(f"task.prediction_window_s must be > 0 (got {prediction_window_s})")
