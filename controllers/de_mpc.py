@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from controllers.condensed_qp import CondensedQP
+from harness.budget import check_memory
 from harness.data.episode import MinMaxNormalizer
 from harness.interfaces import LiftedModel, StepInfo
 from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
@@ -68,6 +69,7 @@ class DEMPCConfig:
     def __post_init__(self) -> None:
         _check_types(self)
         _check_horizons(self.Np, self.Nc)
+        _check_qp_size(int(self.Np), int(self.Nc))
         self.weights()
         _check_positive(
             rho=self.rho,
@@ -231,6 +233,20 @@ def _check_horizons(Np: float, Nc: float) -> None:
             raise ValueError(f"controller.{key} must be a positive integer (got {value})")
     if Nc > Np:
         raise ValueError(f"controller.Nc ({Nc}) must be <= controller.Np ({Np})")
+
+
+def _check_qp_size(Np: int, Nc: int) -> None:
+    """Refuse horizons whose condensed QP cannot fit in memory (``Np = Nc = 100000``: TiB).
+
+    Counted, in float64 and without the lifted dimension (unknown before training, so this is
+    a lower bound): Θ (Np·n × Nc·m), the Hessian P and the dual operator K = G P⁻¹ Gᵀ over the
+    4·Nc·m + 1 constraint rows, and G itself (``controllers/condensed_qp.py``).
+    """
+    variables = Nc * INPUTS + 1
+    rows = 4 * Nc * INPUTS + 1
+    doubles = Np * STATES * Nc * INPUTS + variables**2 + rows**2 + rows * variables
+    what = f"the condensed QP of Np = {Np}, Nc = {Nc}"
+    check_memory("controller.Np and controller.Nc", what, 8 * doubles)
 
 
 def _weight(key: str, value: Any, size: int) -> np.ndarray:

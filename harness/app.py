@@ -4,16 +4,18 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import sys
 import traceback
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException
+from hydra.errors import InstantiationException, MissingConfigException
 from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from harness.config import register_configs, validate
 from harness.metrics import update_metrics, write_json_atomic
@@ -59,6 +61,27 @@ def _one_line(error: BaseException) -> str:
     return f"{type(error).__name__}: {error}".splitlines()[0]
 
 
+def composition_error(error: BaseException) -> str:
+    """One line for an error Hydra raises before the job starts (a wrong override, a missing
+    option, a value of the wrong type), naming the key where OmegaConf names one."""
+    if isinstance(error, MissingConfigException):
+        options = [o for o in error.options or [] if not o.endswith("_schema")]
+        first = str(error).strip().splitlines()[0]
+        return f"{first}; options: {', '.join(options)}" if options else first
+    lines = [line.strip() for line in str(error).strip().splitlines() if line.strip()]
+    message = lines[0].rstrip(".") if lines else type(error).__name__
+    cause = error.__cause__
+    if isinstance(cause, OmegaConfBaseException):
+        reason = (cause.msg or "").strip().splitlines()
+        if reason and reason[0] not in message:
+            message = f"{message}: {reason[0]}"
+        if cause.full_key and cause.full_key not in message:
+            message = f"{message} (key {cause.full_key})"
+    elif "not in struct" in str(error) or "Could not override" in message:
+        message = "; ".join(line for line in lines if not line.startswith(("full_key", "object")))
+    return message
+
+
 def _record_failure(output_dir: Path, error: BaseException) -> str:
     """Leave the reason in the run directory, so a sweep's report can name the failed job."""
     message = _one_line(error)
@@ -70,9 +93,13 @@ def _record_failure(output_dir: Path, error: BaseException) -> str:
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
-def main(cfg: DictConfig) -> None:
+def _job(cfg: DictConfig) -> None:
+    """One job: its failure is recorded in ``error.json`` and, outside a sweep, printed in one
+    line (exit 2 for the config's and the run's errors, 1 for anything else)."""
     hydra_cfg = HydraConfig.get()
     output_dir = Path(hydra_cfg.runtime.output_dir)
+    # A rerun into the directory of a failed job: its old error must not outlive this run.
+    (output_dir / "error.json").unlink(missing_ok=True)
     try:
         run(cfg, output_dir)
     except Exception as error:
@@ -83,4 +110,26 @@ def main(cfg: DictConfig) -> None:
         if isinstance(error, (ValueError, InstantiationException, RuntimeError)):
             print(f"error: {message}", file=sys.stderr)
             sys.exit(2)
-        raise
+        print(f"error: {message} (traceback in {output_dir / 'error.json'})", file=sys.stderr)
+        sys.exit(1)
+
+
+def main() -> None:
+    """``python -m harness``: the Hydra app, every failure in one line ``error: ...``.
+
+    Hydra prints its own errors (an override of the wrong type, a missing option, an unknown
+    key: found while composing, before the job starts) over several lines and exits 1. With
+    ``HYDRA_FULL_ERROR=1`` it raises them instead; this wrapper sets it, prints them in one line
+    and exits 2. A user who sets ``HYDRA_FULL_ERROR=1`` gets Hydra's full traceback as before.
+    """
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        _job()
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        _job()
+    except Exception as error:
+        print(f"error: {composition_error(error)}", file=sys.stderr)
+        sys.exit(2)
+    finally:
+        os.environ.pop("HYDRA_FULL_ERROR", None)

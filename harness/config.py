@@ -4,16 +4,27 @@ Each schema is stored in Hydra's ConfigStore under its group, and each YAML file
 names it first in its defaults list (``conf/plant/sedan.yaml``: ``- sedan_schema``), so
 OmegaConf refuses an unknown key or a value of the wrong type when the config is composed,
 naming the full key. Range checks live in each dataclass's ``__post_init__``; :func:`validate`
-builds every structured node at once, so all of them run before any work starts.
+checks every key of the composed config at once, before any work starts: it builds every
+structured node (plant, data, other plants) and every ``_target_`` node but the task (learner
+and its blocks, controllers, references, recorder), and checks that every part the task uses
+shares the plant's control period. Errors are one line naming the full key where the node
+lives (``task.extra_controllers.de_mpc_long.Np``, not the ``controller.Np`` its class says).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
+import re
+import types
+import typing
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from hydra.core.config_store import ConfigStore
+from hydra.errors import InstantiationException
+from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from harness.data.store import DataConfig
@@ -41,14 +52,25 @@ def register_configs() -> None:
     store.store(group="data", name="data_schema", node=DataConfig)
 
 
-def validate(cfg: DictConfig) -> None:
-    """Build the dataclass of every structured node of ``cfg`` (Hydra's own node aside), so
-    every range check runs now; the first failure raises its one-line ``ValueError``.
+# Keys that hold the control period: plant, data, model and controller share one (the model
+# steps once per period, the reference is indexed by t / dt), so they must all agree.
+PERIOD_KEYS = ("dt", "control_period_s")
 
-    Keys added with ``+key=value`` bypass the schema at composition (Hydra opens the node for
-    them) and ``OmegaConf.to_object`` would drop them silently: they are refused here.
+
+def validate(cfg: DictConfig) -> None:
+    """Check every key of ``cfg`` (Hydra's own node aside) before any work; the first failure
+    raises a one-line ``ValueError`` naming the full key.
+
+    1. the dataclass of every structured node is built, so every ``__post_init__`` runs; keys
+       added with ``+key=value`` bypass the schema at composition (Hydra opens the node for
+       them) and ``OmegaConf.to_object`` would drop them silently: they are refused here;
+    2. every other ``_target_`` node but the task itself is built (cheap: learners build their
+       networks in ``fit``, controllers are settings until given a model);
+    3. every control period the task uses equals ``plant.control_period_s``.
     """
     _validate(cfg, path="", in_schema=False)
+    _build_targets(cfg, path="")
+    _check_periods(cfg)
 
 
 def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None:
@@ -68,10 +90,157 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
         ):
             continue
         child = node[key]
+        if isinstance(child, float) and not math.isfinite(child):
+            raise ValueError(f"{full_key} must be finite (got {child})")  # no key means NaN
         if isinstance(child, (DictConfig, ListConfig)):
             _validate(child, full_key, in_schema or structured)
     if structured and not in_schema:
-        OmegaConf.to_object(node)  # runs every __post_init__ of the block, innermost first
+        try:
+            OmegaConf.to_object(node)  # runs every __post_init__ of the block, innermost first
+        except ValueError as error:
+            raise ValueError(_rekeyed(str(error), path, node)) from None
+
+
+def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
+    """Instantiate every ``_target_`` node below ``node`` that no structured schema covers."""
+    keys: list[Any] = list(node.keys()) if isinstance(node, DictConfig) else list(range(len(node)))
+    for key in keys:
+        full_key = f"{path}.{key}" if path else str(key)
+        if (
+            full_key == "hydra"
+            or OmegaConf.is_interpolation(node, key)
+            or OmegaConf.is_missing(node, key)
+        ):
+            continue
+        child = node[key]
+        if not isinstance(child, (DictConfig, ListConfig)):
+            continue
+        structured = dataclasses.is_dataclass(OmegaConf.get_type(child))
+        # The task is built by the app, with the plant; the parts it holds are built here.
+        target = isinstance(child, DictConfig) and "_target_" in child and not structured
+        if target and full_key != "task":
+            _build(child, full_key)  # type: ignore[arg-type]
+            continue
+        if target:
+            _check_argument_types(child, full_key)  # type: ignore[arg-type]
+        if not structured:
+            _build_targets(child, full_key)
+
+
+def _build(node: DictConfig, path: str) -> None:
+    """Instantiate ``node``; its error, whichever nested block raised it, as one line naming
+    the full key."""
+    _check_argument_types(node, path)
+    try:
+        instantiate(node)
+    except Exception as error:  # a config's own check, or a wrong keyword: both the user's
+        where, cause = path, error
+        while isinstance(cause, InstantiationException):
+            found = re.search(r"full_key: (\S+)", str(cause))
+            where = found.group(1) if found else where
+            if cause.__cause__ is None:
+                break
+            cause = cause.__cause__  # type: ignore[assignment]
+        if isinstance(cause, InstantiationException):  # Hydra's own (a target not found)
+            raise ValueError(f"{where}: {str(cause).splitlines()[0]}") from None
+        message = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
+        unknown = re.search(r"unexpected keyword argument '(\w+)'", message)
+        if isinstance(cause, TypeError) and unknown:
+            raise ValueError(f"unknown key {where}.{unknown.group(1)}") from None
+        target = OmegaConf.select(node, where[len(path) + 1 :]) if where != path else node
+        raise ValueError(_rekeyed(message, where, target)) from None
+
+
+def _check_argument_types(node: DictConfig, path: str) -> None:
+    """Numbers where the target's signature says ``int`` or ``float``, booleans for ``bool``:
+    ``speed_mps=abc`` names its key here, not as a ``TypeError`` from inside the class. Nested
+    ``_target_`` blocks are checked the same way; keys of other types are the class's."""
+    try:
+        target = get_object(str(node._target_))
+        hints = typing.get_type_hints(
+            target if dataclasses.is_dataclass(target) else target.__init__
+        )
+    except Exception:  # not importable or no resolvable hints: instantiate reports it
+        return
+    for key in map(str, node):
+        if key.startswith("_") or OmegaConf.is_interpolation(node, key) or key not in hints:
+            continue
+        value, full_key = node[key], f"{path}.{key}"
+        if isinstance(value, DictConfig) and "_target_" in value:
+            _check_argument_types(value, full_key)
+            continue
+        kinds = _scalar_kinds(hints[key])
+        if kinds is None or (value is None and type(None) in kinds):
+            continue
+        if bool in kinds and not kinds - {bool, type(None)}:
+            if not isinstance(value, bool):
+                raise ValueError(f"{full_key} must be true or false (got {value!r})")
+        elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"{full_key} must be a number (got {value!r})")
+
+
+def _scalar_kinds(hint: Any) -> set[type] | None:
+    """{int, float, bool, NoneType} a hint allows, or None when it allows anything else too."""
+    options = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
+    if typing.get_origin(hint) is typing.Union:
+        options = typing.get_args(hint)
+    kinds = set(options)
+    return kinds if kinds and kinds <= {int, float, bool, type(None)} else None
+
+
+def _rekeyed(message: str, path: str, node: Any) -> str:
+    """``message`` naming keys where ``node`` lives, ``path``.
+
+    A class names its keys by its home group (``controller.Np``); built at another place of the
+    config (``task.extra_controllers.de_mpc_long``) the keys are rewritten there. A message that
+    starts with a bare key of the node (``speed_mps must be > 0``) gets the path in front; any
+    other message that does not name the path, the path and a colon.
+    """
+    home = re.match(r"([A-Za-z_]\w*)\.", message)
+    if home and home.group(1) != path.split(".")[0] and not message.startswith(path + "."):
+        return re.sub(rf"(?<![\w.]){re.escape(home.group(1))}\.", path + ".", message)
+    first = re.match(r"(\w+)\b", message)
+    if first and isinstance(node, DictConfig) and first.group(1) in node:
+        return f"{path}.{message}"
+    return message if path in message else f"{path}: {message}"
+
+
+def _check_periods(cfg: DictConfig) -> None:
+    """Every control period that the task uses equals ``plant.control_period_s``."""
+    if "plant" not in cfg or "task" not in cfg or "control_period_s" not in cfg.plant:
+        return
+    period = float(cfg.plant.control_period_s)
+    # The task's own subtree, and every top-level group it takes by interpolation (``${x}``).
+    task = OmegaConf.to_container(cfg.task, resolve=False)
+    assert isinstance(task, dict)
+    used = {"task": cfg.task}
+    for value in task.values():
+        group = re.fullmatch(r"\$\{(\w+)\}", value) if isinstance(value, str) else None
+        if group and group.group(1) in cfg and group.group(1) != "plant":
+            used[group.group(1)] = cfg[group.group(1)]
+    for path, node in used.items():
+        for key, value in _periods(node, path):
+            if not math.isclose(value, period, rel_tol=1e-9):
+                raise ValueError(
+                    f"{key} ({value:g}) must equal plant.control_period_s ({period:g}): plant, "
+                    "data, model and controller share one sampling period"
+                )
+
+
+def _periods(node: Any, path: str) -> list[tuple[str, float]]:
+    """(full key, value) of every numeric ``PERIOD_KEYS`` entry below ``node``."""
+    found: list[tuple[str, float]] = []
+    if not isinstance(node, DictConfig):
+        return found
+    for key in map(str, node):
+        if OmegaConf.is_interpolation(node, key) or OmegaConf.is_missing(node, key):
+            continue
+        value, full_key = node[key], f"{path}.{key}"
+        if key in PERIOD_KEYS and isinstance(value, int | float) and not isinstance(value, bool):
+            found.append((full_key, float(value)))
+        elif isinstance(value, DictConfig):
+            found.extend(_periods(value, full_key))
+    return found
 
 
 def as_object(node: Any, schema: type[T]) -> T:

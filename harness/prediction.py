@@ -183,7 +183,7 @@ def robustness(
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1 (got {repeats})")
     for name, learner in learners.items():
-        if not getattr(getattr(learner, "random_layer", None), "enabled", False):
+        if not learner.redraws_random_layer:
             raise ValueError(f"learner {name!r} was not trained with a random layer")
     recorder = recorder or Recorder()
     results: dict[str, dict[str, dict[str, dict[str, float]]]] = {name: {} for name in learners}

@@ -30,11 +30,6 @@ class Trajectory:
         return np.gradient(vy, self.time_s) + vx * yaw_rate
 
     @property
-    def longitudinal_accel_mps2(self) -> np.ndarray:
-        vx, vy, yaw_rate = self.states.T
-        return np.gradient(vx, self.time_s) - vy * yaw_rate
-
-    @property
     def distance_m(self) -> np.ndarray:
         steps = np.linalg.norm(np.diff(self.poses[:, :2], axis=0), axis=1)
         return np.concatenate([[0.0], np.cumsum(steps)])

@@ -32,7 +32,7 @@ import torch
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.files import write_atomic
 
-__all__ = ["FORMAT", "KoopmanLearner", "Learner", "load"]
+__all__ = ["FORMAT", "KoopmanLearner", "Learner", "check_same_learner", "load"]
 
 FORMAT = "koopman-vehicle-harness/learner"
 FORMAT_VERSION = 1
@@ -113,6 +113,19 @@ class Learner(ABC):
         """The learner a model file's ``hyperparameters`` describe (unfitted)."""
         return cls(**hyperparameters)
 
+    def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
+        """Refuse, in one line naming the key, sizes whose fit on episodes of up to
+        ``episode_frames`` frames cannot fit in this machine's memory (see
+        :mod:`harness.budget`); called before any data is collected. The default checks
+        nothing: a learner that can be configured too big overrides it."""
+        del episode_frames, n, m
+
+    @property
+    def redraws_random_layer(self) -> bool:
+        """Whether ``predict(..., random_layer_seed=s)`` draws a fresh random layer each call (the
+        paper's robustness experiment): only such learners get repeated predictions."""
+        return False
+
     @property
     def hyperparameters(self) -> dict[str, Any]:
         """The constructor keywords this learner was built with (what its config holds)."""
@@ -184,6 +197,65 @@ def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT
     learner.normalizer_ = MinMaxNormalizer.from_dict(payload["normalizer"])
     learner._set_state(payload["tensors"])
     return learner
+
+
+# Training settings that say how long or how a model was trained, not which model it is: a
+# model file trained with another budget still is the configured learner.
+RUN_SETTINGS = (
+    "max_steps",
+    "max_epochs",
+    "patience",
+    "progress",
+    "num_threads",
+    "checkpoint_every_steps",
+)
+
+
+def check_same_learner(loaded: Learner, configured: Learner, source: str, name: str) -> None:
+    """Refuse a loaded model that is not the configured learner ``name`` (one line, both named).
+
+    A run reports its model under the configured learner's name (metrics, ``model_<name>.pt``,
+    a sweep's tables): an EDMD file run as ``learner=dnn``, or a seed-0 file as ``seed=1``,
+    would be reported as what it is not. The class and every hyperparameter must agree, except
+    the training budget and runtime settings (``RUN_SETTINGS``).
+    """
+    if type(loaded) is not type(configured):
+        raise ValueError(
+            f"task.model_path {source} holds a {type(loaded).__name__} model ({loaded.name}), "
+            f"but learner={name} configures a {type(configured).__name__}: choose the "
+            "learner the file was trained as, or another file"
+        )
+    difference = _first_difference(
+        _identity(loaded.hyperparameters), _identity(configured.hyperparameters)
+    )
+    if difference is not None:
+        key, saved, wanted = difference
+        raise ValueError(
+            f"task.model_path {source} was trained with learner.{key}={saved!r}, but "
+            f"learner={name} sets learner.{key}={wanted!r}: set it to match, or use another file"
+        )
+
+
+def _identity(hyperparameters: Mapping[str, Any]) -> dict[str, Any]:
+    values = dict(hyperparameters)
+    if isinstance(values.get("training"), Mapping):
+        values["training"] = {k: v for k, v in values["training"].items() if k not in RUN_SETTINGS}
+    return values
+
+
+def _first_difference(saved: Any, wanted: Any, key: str = "") -> tuple[str, Any, Any] | None:
+    """(dotted key, saved, wanted) of the first value that differs; lists compare as lists."""
+    if isinstance(saved, Mapping) and isinstance(wanted, Mapping):
+        for name in sorted(set(saved) | set(wanted), key=str):
+            found = _first_difference(
+                saved.get(name), wanted.get(name), f"{key}.{name}" if key else str(name)
+            )
+            if found is not None:
+                return found
+        return None
+    if isinstance(saved, list | tuple) and isinstance(wanted, list | tuple):
+        saved, wanted = list(saved), list(wanted)
+    return None if saved == wanted else (key, saved, wanted)
 
 
 # -- validation helpers shared by the learners ---------------------------------------------------

@@ -42,7 +42,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from learners.base import check_choice, check_rollout_args
+from learners.base import INPUT_DIM, STATE_DIM, check_choice, check_rollout_args
 from learners.dictionaries import Dictionary
 from learners.edmd import EDMD
 
@@ -131,6 +131,11 @@ class BilinearEDMD(EDMD):
         return self.A_ + np.einsum("...j,jnk->...nk", vbar, self.H_)
 
     # -- EDMD's hooks ---------------------------------------------------------------------------
+
+    def regressor_count(self, n: int = STATE_DIM, m: int = INPUT_DIM) -> int:
+        """N + m + m (N - 1): [z; v] and each input times z without its constant."""
+        size = self.lifted_dim(n)
+        return size + m + m * (size - int(self.include_constant))
 
     def _regression_rows(
         self, z: np.ndarray, v: np.ndarray, z_next: np.ndarray

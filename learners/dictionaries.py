@@ -44,6 +44,15 @@ class Dictionary(ABC):
     ``_`` (what ``state`` returns, saved as tensors).
     """
 
+    @property
+    @abstractmethod
+    def size(self) -> tuple[str, int]:
+        """(its config key, K): how many observables it adds, for size checks and messages."""
+
+    def floats_per_row(self, n: int) -> int:
+        """The largest temporary of evaluating phi on one state row (float64 count): K."""
+        return self.size[1]
+
     @abstractmethod
     def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
         """Draw the parameters from the normalized training states (M, n) with ``rng``."""
@@ -98,6 +107,14 @@ class ThinPlateRBF(Dictionary):
     def __post_init__(self) -> None:
         self.num_centers = check_int("dictionary.num_centers", self.num_centers, 0)
 
+    @property
+    def size(self) -> tuple[str, int]:
+        return "dictionary.num_centers", self.num_centers
+
+    def floats_per_row(self, n: int) -> int:
+        """``x_n[..., None, :] - centers``: K·n per row."""
+        return self.num_centers * n
+
     def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
         mean, std = states_n.mean(0), states_n.std(0)
         self.centers_ = rng.normal(mean, std, size=(self.num_centers, states_n.shape[1]))
@@ -137,6 +154,10 @@ class RandomFeatures(Dictionary):
         self.activation = check_choice(key + "activation", self.activation, tuple(ACTIVATIONS))
         self.weight_scale = check_positive(key + "weight_scale", self.weight_scale)
         self.bias_scale = check_positive(key + "bias_scale", self.bias_scale)
+
+    @property
+    def size(self) -> tuple[str, int]:
+        return "dictionary.num_features", self.num_features
 
     def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
         n = states_n.shape[1]

@@ -21,8 +21,11 @@ from typing import Any, ClassVar, Self
 import numpy as np
 import torch
 
+from harness.budget import check_memory
 from harness.data.episode import Episode, MinMaxNormalizer
 from learners.base import (
+    INPUT_DIM,
+    STATE_DIM,
     KoopmanLearner,
     check_episodes,
     check_int,
@@ -100,6 +103,9 @@ class EDMD(KoopmanLearner):
         check_episodes(train, "train", normalizer)
         if validation:
             check_episodes(validation, "validation", normalizer)
+        n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
+        self.check_size(max(len(e) for e in train), n, m)
+        self._check_enough_pairs(sum(len(e) - 1 for e in train), n, m)
         self.normalizer_ = normalizer
         states_n = np.concatenate([normalizer.states(e.states) for e in train])
         self.dictionary.fit(states_n, np.random.default_rng(self.seed))
@@ -117,6 +123,41 @@ class EDMD(KoopmanLearner):
         n = normalizer.state_min.shape[0]
         self.C_ = np.eye(n, n_lift)
         return self
+
+    def lifted_dim(self, n: int = STATE_DIM) -> int:
+        """N = n + 1 (the constant, if any) + K."""
+        return n + int(self.include_constant) + self.dictionary.size[1]
+
+    def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
+        """Refuse a dictionary too big to fit here (``num_centers=1e9``), before any data.
+
+        Counted in float64 (lower bounds): the dictionary's temporaries and the lifted states of
+        the longest episode, and the streamed QR's triangle stacked on one row block, twice
+        (numpy's QR copies its input): (2N + m + rows) × (2N + m).
+        """
+        key, size = self.dictionary.size
+        width = self.lifted_dim(n) + self.regressor_count(n, m)
+        floats = episode_frames * (self.dictionary.floats_per_row(n) + 2 * self.lifted_dim(n))
+        floats += 2 * (width + _CHUNK_ROWS) * width
+        what = f"EDMD with {size} observables on drives of {episode_frames} steps (data.max_steps)"
+        check_memory(f"learner.{key}", what, 8 * floats)
+
+    def _check_enough_pairs(self, pairs: int, n: int, m: int) -> None:
+        """Fewer one-step pairs than the N + m unknowns of each row of [A B] leave the least
+        squares underdetermined: it then fits any data exactly, and its errors mean nothing."""
+        unknowns = self.regressor_count(n, m)
+        if pairs < unknowns:
+            key, size = self.dictionary.size
+            raise ValueError(
+                f"{type(self).__name__} with learner.{key}={size} has {unknowns} unknowns per "
+                "row of its least squares but "
+                f"the training drives hold only {pairs} one-step pairs: collect longer drives "
+                "(data.min_steps) or check that the plant moves"
+            )
+
+    def regressor_count(self, n: int = STATE_DIM, m: int = INPUT_DIM) -> int:
+        """Columns of the least squares, N + m for [A B] (the size checks count them)."""
+        return self.lifted_dim(n) + m
 
     def _regression_rows(
         self, z: np.ndarray, v: np.ndarray, z_next: np.ndarray

@@ -10,9 +10,17 @@ from typing import Any, Self
 import numpy as np
 import torch
 
+from harness.budget import check_memory
 from harness.data.episode import Episode, MinMaxNormalizer
 from learners import training as loop
-from learners.base import Learner, check_episodes, check_int, check_rollout_args
+from learners.base import (
+    INPUT_DIM,
+    STATE_DIM,
+    Learner,
+    check_episodes,
+    check_int,
+    check_rollout_args,
+)
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
 from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, block
 from learners.windows import WindowData
@@ -111,6 +119,10 @@ class TrainedLearner(Learner):
         self._after_training(train)
         return self
 
+    @property
+    def redraws_random_layer(self) -> bool:
+        return self.random_layer.enabled
+
     def predict(
         self, x0: np.ndarray, inputs: np.ndarray, *, random_layer_seed: int | None = None
     ) -> np.ndarray:
@@ -147,6 +159,26 @@ class TrainedLearner(Learner):
             x = norm.states_inverse(xn).reshape(*batch, steps + 1, n)
         x[..., 0, :] = x0
         return x
+
+    def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
+        """Refuse a network too big for this machine (``hidden=[1000000000]``), before any data.
+
+        float32 counts (lower bounds): weights, gradients and Adam's two moments (4 per
+        parameter), and one batch of windows' activations through every layer.
+        """
+        del episode_frames  # windows, not episodes, set the batch
+        specs = self._specs(n, m)
+        parameters = sum(s.fan_out * (s.fan_in + int(s.bias)) for s in specs)
+        widths = sum(s.fan_out for s in specs)
+        activations = self.training.batch_size * (self.horizon + 1) * widths
+        what = f"{self.name} with {parameters} parameters (batch {self.training.batch_size})"
+        sizes = [  # the widths and sizes among the hyperparameters: what to make smaller
+            f"learner.{key}"
+            for key, value in self.hyperparameters.items()
+            if key != "horizon" and isinstance(value, int | list) and not isinstance(value, bool)
+        ]
+        sizes.append("learner.training.batch_size")
+        check_memory(" / ".join(sizes), what, 4 * (4 * parameters + activations))
 
     @property
     def checkpoint_path(self) -> Path | None:

@@ -9,7 +9,11 @@ What the loop guarantees:
   the epoch and the early-stopping state go to the checkpoint file (atomically). A new
   ``fit`` with the same hyperparameters and data continues from it and ends exactly where an
   uninterrupted run ends; ``max_steps``, ``max_epochs``, ``patience`` may be raised to extend a
-  finished run. Other data or hyperparameters refuse the checkpoint in one line.
+  finished run. Other data or hyperparameters refuse the checkpoint in one line (it may be
+  another run's: it is left alone). The file ends with a SHA-256 of its content; a checkpoint
+  that is truncated, altered or unreadable is damaged: a one-line warning names it, it is
+  moved aside to ``<name>.ckpt.damaged`` and training starts afresh (a damaged file cannot be
+  resumed from, and the run it belongs to is this one).
 - **Never a silent NaN model.** A non-finite loss stops training with a one-line RuntimeError.
 - **Early stopping** on the validation loss every ``eval_every_steps``; the returned model is the
   best one seen (the last one when there is no validation data).
@@ -23,7 +27,9 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import hashlib
+import io
 import json
+import logging
 import math
 import os
 from collections.abc import Iterator, Mapping
@@ -51,6 +57,11 @@ __all__ = [
 ]
 
 VALIDATION_CHUNK = 1024  # windows per validation forward pass
+# A checkpoint is torch.save's bytes, then this marker, the hex SHA-256 of those bytes and "\n".
+_CHECKSUM_MARKER = b"\nkoopman-harness checkpoint sha256 "
+_TRAILER_BYTES = len(_CHECKSUM_MARKER) + 64 + 1
+
+log = logging.getLogger(__name__)
 
 _Block = TypeVar("_Block")
 
@@ -196,7 +207,18 @@ def train(
     }
     state = _State.fresh()
     if checkpoint_path is not None and checkpoint_path.exists():
-        state = _State.load(checkpoint_path, fingerprint, params, optimizer)
+        try:
+            state = _State.load(checkpoint_path, fingerprint, params, optimizer)
+        except DamagedCheckpointError as damaged:
+            aside = checkpoint_path.with_name(checkpoint_path.name + ".damaged")
+            checkpoint_path.replace(aside)
+            log.warning(
+                "%s: %s is damaged (%s); training starts afresh (the file is kept as %s)",
+                name,
+                checkpoint_path,
+                damaged,
+                aside.name,
+            )
 
     def validation_loss() -> dict[str, float]:
         totals: dict[str, float] = {}
@@ -348,7 +370,11 @@ class _State:
             "best_params": self.best_params,
         }
         payload["state"]["history"] = self.history.to_dict()
-        write_atomic(path, lambda handle: torch.save(payload, handle))
+        buffer = io.BytesIO()
+        torch.save(payload, buffer)
+        body = buffer.getvalue()
+        trailer = _CHECKSUM_MARKER + hashlib.sha256(body).hexdigest().encode() + b"\n"
+        write_atomic(path, lambda handle: handle.write(body + trailer))
 
     @classmethod
     def load(
@@ -358,22 +384,50 @@ class _State:
         params: FlatParameters,
         optimizer: torch.optim.Optimizer,
     ) -> _State:
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception:  # a torn or foreign file: say so in one line
-            raise ValueError(
-                f"{path} is not a readable checkpoint; remove it to start over"
-            ) from None
+        """The state saved in ``path``; its parameters and Adam's state go into ``params`` and
+        ``optimizer``. :class:`DamagedCheckpointError` (nothing changed) where the file fails its
+        checksum or cannot be read; ``ValueError`` where it is of other data or hyperparameters.
+        """
+        payload = _read_checkpoint(path)
         if payload.get("fingerprint") != _digest(fingerprint):
             raise ValueError(
                 f"{path} was written for other data or hyperparameters; "
                 f"remove it or use another output directory"
             )
-        params.data.copy_(payload["params"])
-        optimizer.load_state_dict(payload["optimizer"])
-        values = dict(payload["state"])
-        values["history"] = History(**values["history"])
-        return cls(**values, best_params=payload["best_params"])
+        try:
+            values = dict(payload["state"])
+            values["history"] = History(**values["history"])
+            state = cls(**values, best_params=payload["best_params"])
+            saved = payload["params"]
+            if not isinstance(saved, torch.Tensor) or saved.shape != params.data.shape:
+                raise ValueError("its parameters have another shape")
+            # Adam checks the saved groups before it changes anything.
+            optimizer.load_state_dict(payload["optimizer"])
+        except (KeyError, TypeError, ValueError) as error:
+            raise DamagedCheckpointError(f"its content does not fit: {error}") from None
+        params.data.copy_(saved)
+        return state
+
+
+class DamagedCheckpointError(Exception):
+    """A checkpoint file that fails its checksum or cannot be read; the message says why."""
+
+
+def _read_checkpoint(path: Path) -> dict[str, Any]:
+    """The payload of a checkpoint whose trailing SHA-256 matches its content."""
+    raw = path.read_bytes()
+    body, trailer = raw[:-_TRAILER_BYTES], raw[-_TRAILER_BYTES:]
+    if not trailer.startswith(_CHECKSUM_MARKER):
+        raise DamagedCheckpointError(f"no checksum at its end ({len(raw)} bytes; truncated?)")
+    if hashlib.sha256(body).hexdigest().encode() != trailer[len(_CHECKSUM_MARKER) : -1]:
+        raise DamagedCheckpointError("fails its checksum (truncated or modified)")
+    try:
+        payload = torch.load(io.BytesIO(body), map_location="cpu", weights_only=True)
+    except Exception as error:  # whatever torch says of a file it cannot read
+        raise DamagedCheckpointError(f"torch cannot read it: {error}".splitlines()[0]) from None
+    if not isinstance(payload, dict):
+        raise DamagedCheckpointError("it holds no checkpoint")
+    return payload
 
 
 def _digest(fingerprint: Mapping[str, Any]) -> str:

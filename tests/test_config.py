@@ -134,7 +134,8 @@ def test_an_out_of_range_value_fails_validation_in_one_line_naming_the_key(
     if message is None:
         validate(cfg)
         cfg.task.other_plants.sedan_wet.tire.road_friction = -1.0
-        message = "plant.tire.road_friction must be > 0"  # ... and refused as well
+        # ... and refused, naming the key where that plant lives
+        message = "task.other_plants.sedan_wet.tire.road_friction must be > 0 (got -1)"
     with pytest.raises(ValueError) as info:
         validate(cfg)
     assert message in str(info.value) and "\n" not in str(info.value)

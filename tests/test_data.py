@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
-from harness.data.store import DataConfig, DatasetError, collect, content_key, load
+from harness.data.store import (
+    DataConfig,
+    DatasetError,
+    _write_manifest,
+    collect,
+    content_key,
+    load,
+)
 from harness.interfaces import Plant
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
@@ -194,8 +201,8 @@ def test_worker_processes_store_the_same_bytes_as_one_in_process_worker(
     assert checksums(parallel) == checksums(directory)
 
 
-def test_a_truncated_episode_is_detected_and_never_used(
-    stored, tmp_path: Path, sedan_module: Sedan
+def test_a_truncated_episode_is_never_loaded_and_the_next_collection_redrives_it_alone(
+    stored, tmp_path: Path, sedan_module: Sedan, caplog: pytest.LogCaptureFixture
 ) -> None:
     _data, directory = stored
     copy = tmp_path / directory.name
@@ -207,8 +214,15 @@ def test_a_truncated_episode_is_detected_and_never_used(
     with pytest.raises(DatasetError, match=r"episode_0001\.npz fails its checksum") as info:
         load(copy)
     assert "\n" not in str(info.value)
-    with pytest.raises(DatasetError, match="checksum"):
-        collect(sedan_module, tiny(tmp_path), DRY, progress=False)
+    assert "recollect episode_0001 alone" in str(info.value)
+    untouched = {
+        n: (copy / f"{n}.npz").stat().st_mtime_ns for n in ("episode_0000", "episode_0002")
+    }
+    assert collect(sedan_module, tiny(tmp_path), DRY, progress=False) == copy
+    assert "recollecting episode_0001 alone" in caplog.text
+    assert victim.read_bytes() == (directory / victim.name).read_bytes()
+    assert {n: (copy / f"{n}.npz").stat().st_mtime_ns for n in untouched} == untouched
+    assert (copy / "manifest.json").read_bytes() == (directory / "manifest.json").read_bytes()
 
 
 def test_interrupted_collection_resumes_without_redoing_finished_episodes(
@@ -224,7 +238,7 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     manifest["episodes"] = {k: v for k, v in manifest["episodes"].items() if k in kept}
     manifest["complete"] = False
     manifest.pop("split"), manifest.pop("normalizer")
-    (target / "manifest.json").write_text(json.dumps(manifest))
+    _write_manifest(target, manifest)
     for name in kept:
         (target / f"{name}.npz").write_bytes((directory / f"{name}.npz").read_bytes())
     stamps = {name: (target / f"{name}.npz").stat().st_mtime_ns for name in kept}
@@ -232,5 +246,6 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     assert {n: (target / f"{n}.npz").stat().st_mtime_ns for n in kept} == stamps
     original, finished = load(directory), load(target)
     assert finished.manifest["split"] == original.manifest["split"]
+    assert (target / "manifest.json").read_bytes() == (directory / "manifest.json").read_bytes()
     for a, b in zip(finished.episodes(), original.episodes(), strict=True):
         np.testing.assert_array_equal(a.inputs, b.inputs)

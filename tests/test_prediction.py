@@ -12,7 +12,6 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from harness.prediction import by_episode, evaluate, robustness, windowed
 from harness.recorder import Recorder
 from learners import DNN, EDMD, Learner, ThinPlateRBF
-from learners.training import RandomLayerConfig
 from tests.toydata import drive_episodes
 
 A_TRUE = np.array([[0.98, 0.05, 0.0], [-0.05, 0.95, 0.0], [0.0, 0.02, 0.9]])
@@ -59,7 +58,10 @@ class NoisyHold(Hold):
     """Hold plus a constant offset drawn per row from the random-layer seed (for robustness)."""
 
     name = "noisy_hold"
-    random_layer = RandomLayerConfig(enabled=True, std=1.0)
+
+    @property
+    def redraws_random_layer(self) -> bool:
+        return True
 
     def predict(self, x0, inputs, *, random_layer_seed: int | None = None) -> np.ndarray:
         out = super().predict(x0, inputs)

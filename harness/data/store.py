@@ -16,24 +16,46 @@ config (episodes, lengths, driver, seed), what the driver knows of the car and t
 source. The same configuration reuses the stored dataset; any change gives a new key. The store
 knows plants only through :class:`harness.interfaces.Plant`; worker processes get the plant by
 pickling (a ``Sedan`` pickles as its parameters and is rebuilt there).
-Every file is written atomically; an interrupted collection resumes with the episodes that are
-missing; a file whose checksum does not match is reported and never used.
+
+What the store guarantees (``tests/test_store_faults.py`` injects each fault):
+
+- Every file is written atomically; temporary files a killed writer left behind are removed by
+  the next collection, under the dataset's lock.
+- An interrupted collection resumes with the episodes that are missing. A missing episode file,
+  or one that fails its checksum, is recollected alone (its seed and length are fixed by the
+  config, so it gets the same bytes); the warning says so. A recollected episode whose bytes
+  differ from its recorded checksum stops the run (the machine does not reproduce the data).
+- ``manifest.json`` carries a SHA-256 of its own content (``manifest_sha256``). A manifest that
+  cannot be read or fails that checksum is rebuilt from the episode files that verify on their
+  own (the zip's CRC-32 of every array, shapes, the time axis, the planned length); everything
+  in it is derived from the config, the plant and those files, so the rebuilt manifest has the
+  bytes of the original (as long as the package versions it records have not changed).
+- ``load`` never uses a file that fails a checksum: it stops with one line naming the file.
+- A disk that is full or not writable stops the collection with one line naming the directory.
+- Worker processes exit as soon as their parent dies or is interrupted (SIGKILL, SIGTERM,
+  Ctrl-C): each watches a pipe that only the parent holds open.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import fcntl
 import hashlib
 import json
+import logging
 import math
+import os
 import platform
+import threading
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from multiprocessing import get_context, get_start_method
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +71,19 @@ from harness.plant.native import cache_dir
 FORMAT_VERSION = 1
 SPLITS = ("train", "validation", "test")
 _DRIVER_SOURCE = Path(__file__).with_name("driver.py")
+MANIFEST = "manifest.json"
+MANIFEST_CHECKSUM = "manifest_sha256"
+# Refuse configs that imply more control steps than this: 7.2 GB of episodes on disk and in
+# memory when loaded, hours of collection (data=paper has at most 1.6e6).
+MAX_TOTAL_STEPS = 100_000_000
+BYTES_PER_STEP = 9 * 8  # time, 3 states, 2 inputs, 3 poses as float64
+STEPS_PER_SECOND = 10_000  # one collection process (README, bench/collect_throughput.py)
+_NOT_WRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS)
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+
+RERUN = "rerun the same collection (task=collect, same plant and data)"
+
+log = logging.getLogger(__name__)
 
 
 class DatasetError(ValueError):
@@ -73,6 +108,19 @@ class DataConfig:
     record_every: int = 1  # decimation of the recording only
 
     def __post_init__(self) -> None:
+        integers = {
+            "episodes": self.episodes,
+            "min_steps": self.min_steps,
+            "max_steps": self.max_steps,
+            "seed": self.seed,
+            "workers": self.workers,
+            "record_every": self.record_every,
+        }
+        for key, value in integers.items():
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"data.{key} must be an integer (got {value!r})")
+        if self.seed < 0:
+            raise ValueError(f"data.seed must be >= 0 (got {self.seed})")
         if self.episodes < 3:
             raise ValueError(f"data.episodes must be >= 3 (got {self.episodes})")
         if not 10 <= self.min_steps <= self.max_steps:
@@ -91,6 +139,14 @@ class DataConfig:
             )
         if self.workers < 1 or self.record_every < 1:
             raise ValueError("data.workers and data.record_every must be >= 1")
+        total = self.episodes * self.max_steps
+        if total > MAX_TOTAL_STEPS:
+            raise ValueError(
+                f"data.max_steps ({self.max_steps}) x data.episodes ({self.episodes}) allows "
+                f"{total:.3g} control steps, about {total * BYTES_PER_STEP / 1e9:.3g} GB and "
+                f"{total / STEPS_PER_SECOND / 3600:.3g} h of collection; at most "
+                f"{MAX_TOTAL_STEPS:.0e} are accepted (data=paper: 1.6e+06)"
+            )
 
     def content(self) -> dict[str, Any]:
         """The fields that determine the data (everything but where and how fast)."""
@@ -164,8 +220,77 @@ def dataset_root(data: DataConfig) -> Path:
     return Path(data.root).expanduser() if data.root else cache_dir() / "datasets"
 
 
-def _write_manifest(path: Path, manifest: dict[str, Any]) -> None:
-    write_text_atomic(path / "manifest.json", json.dumps(manifest, indent=1))
+def _episode_name(index: int) -> str:
+    return f"episode_{index:04d}"
+
+
+def _manifest_body(
+    key: str,
+    data: DataConfig,
+    fingerprint: Mapping[str, Any],
+    knowledge: DriverKnowledge,
+    versions: Mapping[str, str],
+    episodes: Mapping[str, Mapping[str, Any]],
+) -> dict[str, Any]:
+    """The manifest of an incomplete dataset: all of it derived from the config, the plant and
+    the episode files (episodes in name order, so a rebuilt manifest has the original's bytes)."""
+    return {
+        "format": FORMAT_VERSION,
+        "key": key,
+        "data": data.content(),
+        "plant": dict(fingerprint),
+        "driver_knowledge": dataclasses.asdict(knowledge),
+        "versions": dict(versions),
+        "episodes": {name: dict(episodes[name]) for name in sorted(episodes)},
+        "complete": False,
+    }
+
+
+def _manifest_digest(manifest: Mapping[str, Any]) -> str:
+    body = {k: v for k, v in manifest.items() if k != MANIFEST_CHECKSUM}
+    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+    body = {k: v for k, v in manifest.items() if k != MANIFEST_CHECKSUM}
+    text = json.dumps({**body, MANIFEST_CHECKSUM: _manifest_digest(body)}, indent=1)
+    write_text_atomic(directory / MANIFEST, text)
+
+
+class _ManifestError(Exception):
+    """``manifest.json`` cannot be trusted; the message says why (a clause after its path)."""
+
+
+def _read_manifest(directory: Path) -> dict[str, Any] | None:
+    """The stored manifest, None where there is none; :class:`_ManifestError` where it cannot
+    be read or does not match its own checksum (a flipped byte, an edited digit or name)."""
+    path = directory / MANIFEST
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    try:
+        manifest = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as error:
+        raise _ManifestError(
+            f"is not UTF-8 text (byte 0x{raw[error.start]:02x} at {error.start})"
+        ) from None
+    except json.JSONDecodeError as error:
+        raise _ManifestError(f"is not valid JSON ({error})") from None
+    if not isinstance(manifest, dict):
+        raise _ManifestError("is not a JSON object")
+    if MANIFEST_CHECKSUM not in manifest:
+        raise _ManifestError("has no checksum of its own (written by an older harness)")
+    try:
+        digest = _manifest_digest(manifest)
+    except ValueError as error:  # NaN or infinity written into it
+        raise _ManifestError(f"holds a value JSON does not allow ({error})") from None
+    if manifest[MANIFEST_CHECKSUM] != digest:
+        raise _ManifestError("fails its own checksum (edited or damaged)")
+    if manifest.get("format") != FORMAT_VERSION:
+        raise _ManifestError(f"is of format {manifest.get('format')}, not {FORMAT_VERSION}")
+    return manifest
 
 
 @contextmanager
@@ -177,6 +302,12 @@ def _locked(directory: Path) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _remove_temporaries(directory: Path) -> None:
+    """Half-written files of a killed writer (``.<name>.<random>.tmp``); call under the lock."""
+    for path in directory.glob(".*.tmp"):
+        path.unlink(missing_ok=True)
 
 
 def _episode_seed(data: DataConfig, index: int) -> np.random.Generator:
@@ -215,65 +346,125 @@ def drive_episode(
     }
 
 
+def _entry(path: Path, steps: int, spun: bool) -> dict[str, Any]:
+    return {"file": path.name, "sha256": _sha256(path), "steps": steps, "spun": spun}
+
+
+def _check_episode_file(path: Path, planned: int, dt: float) -> dict[str, Any]:
+    """The manifest entry of an episode file that verifies on its own, without a manifest: the
+    zip's CRC-32 of every array, the shapes, the time axis and the planned length. An episode
+    shorter than planned is one where the car spun (``drive_episode`` stops there).
+
+    Raises ``ValueError`` (or ``OSError``, ``zipfile.BadZipFile``) saying what is wrong."""
+    with np.load(path) as arrays:
+        if sorted(arrays.files) != ["inputs", "poses", "states", "time_s"]:
+            raise ValueError(f"holds arrays {sorted(arrays.files)}")
+        time_s, states = arrays["time_s"], arrays["states"]
+        inputs, poses = arrays["inputs"], arrays["poses"]
+    steps = len(time_s)
+    shapes = (states.shape, inputs.shape, poses.shape)
+    if not 2 <= steps <= planned or shapes != ((steps, 3), (steps, 2), (steps, 3)):
+        raise ValueError(f"has {steps} steps of shapes {shapes} ({planned} planned)")
+    if not np.array_equal(time_s, np.arange(steps) * dt):
+        raise ValueError("has another time axis")
+    return _entry(path, steps, steps < planned)
+
+
+def _verify(directory: Path, episodes: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+    """Per episode that cannot be used, what is wrong with its file."""
+    problems = {}
+    for name, entry in episodes.items():
+        path = directory / entry["file"]
+        if not path.exists():
+            problems[name] = "is missing"
+        elif _sha256(path) != entry["sha256"]:
+            problems[name] = "fails its checksum (truncated or modified)"
+    return problems
+
+
 _worker_plant: Plant | None = None
 
 
-def _start_worker(plant: Plant) -> None:
-    """Each worker gets the plant once (pickled: a spawned process rebuilds it), not per episode."""
+def _start_worker(plant: Plant, parent: Connection | None) -> None:
+    """Each worker gets the plant once (pickled: a spawned process rebuilds it), not per episode,
+    and (in a process) the reading end of a pipe only its parent holds open."""
     global _worker_plant
     _worker_plant = plant
+    if parent is not None:
+        threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+
+
+def _exit_with_parent(parent: Connection) -> None:
+    """Wait for end-of-file on the pipe (the parent exited, was killed or gave up on us), then
+    leave at once: an orphaned worker would idle forever and keep the resource tracker alive."""
+    try:
+        while True:
+            parent.recv_bytes()
+    except (EOFError, OSError):
+        os._exit(1)
 
 
 def _collect_one(
     data: DataConfig, knowledge: DriverKnowledge, index: int, steps: int, directory: str
-) -> tuple[int, str, int, bool]:
+) -> tuple[int, dict[str, Any]]:
     if _worker_plant is None:
         raise RuntimeError("a collection worker was started without its plant")
     episode = drive_episode(_worker_plant, data, knowledge, index, steps)
-    path = Path(directory) / f"episode_{index:04d}.npz"
+    path = Path(directory) / f"{_episode_name(index)}.npz"
     arrays = {k: v for k, v in episode.items() if k != "spun"}
-
     write_atomic(path, lambda handle: np.savez(handle, **arrays))
-    return index, _sha256(path), len(episode["time_s"]), bool(episode["spun"])
+    return index, _entry(path, len(episode["time_s"]), bool(episode["spun"]))
 
 
-def _executor(workers: int, plant: Plant) -> Executor:
+@contextmanager
+def _pool(workers: int, plant: Plant) -> Iterator[Executor]:
     """Spawned worker processes; in-process (one thread, on ``plant`` itself) where spawning
-    cannot work.
+    cannot work. Leaving the block by an exception (an error, Ctrl-C) stops the workers at once
+    instead of letting them finish the queued episodes.
 
     A job run by a process-based launcher (joblib's loky workers) has a start method that a
     freshly spawned child cannot restore; there the sweep's other jobs keep the cores busy.
     """
+    pool: Executor
+    alive: Connection | None = None
     if workers > 1 and get_start_method(allow_none=True) in (None, "spawn", "fork", "forkserver"):
-        return ProcessPoolExecutor(
-            workers,
-            mp_context=get_context("spawn"),
-            initializer=_start_worker,
-            initargs=(plant,),
+        context = get_context("spawn")
+        watched, alive = context.Pipe(duplex=False)
+        pool = ProcessPoolExecutor(
+            workers, mp_context=context, initializer=_start_worker, initargs=(plant, watched)
         )
-    return ThreadPoolExecutor(1, initializer=_start_worker, initargs=(plant,))
-
-
-def _read_manifest(directory: Path) -> dict[str, Any]:
-    path = directory / "manifest.json"
+    else:
+        watched = None
+        pool = ThreadPoolExecutor(1, initializer=_start_worker, initargs=(plant, None))
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise DatasetError(
-            f"data: {path} is not valid JSON ({error}); delete {directory} to recollect"
-        ) from error
+        yield pool
+    except BaseException:
+        if alive is not None:
+            alive.close()  # every worker reads end-of-file and exits, mid-episode
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    else:
+        pool.shutdown(wait=True)
+    finally:
+        for end in (alive, watched):
+            if end is not None:
+                end.close()
 
 
-def _verify(directory: Path, manifest: dict[str, Any]) -> None:
-    for name, entry in manifest["episodes"].items():
-        path = directory / entry["file"]
-        if not path.exists():
-            raise DatasetError(f"data: {path} is missing; delete {directory} to recollect")
-        if _sha256(path) != entry["sha256"]:
-            raise DatasetError(
-                f"data: {path} fails its checksum (truncated or modified); delete that file "
-                f"and rerun to recollect episode {name}"
-            )
+def _os_error(error: OSError, directory: Path, data: DataConfig) -> DatasetError:
+    """A full or read-only disk in one line that names the directory and what to do."""
+    reason = error.strerror or str(error)
+    if error.errno in _FULL:
+        return DatasetError(
+            f"data: no space left to write the dataset {directory} ({reason}); free space "
+            f"there and rerun (the finished episodes are kept) or set data.root=<another disk>"
+        )
+    if error.errno in _NOT_WRITABLE:
+        return DatasetError(
+            f"data: {dataset_root(data)} is not writable ({reason}); "
+            f"set data.root=<a writable directory>"
+        )
+    return DatasetError(f"data: cannot write the dataset {directory} ({error})")
 
 
 def collect(
@@ -289,74 +480,139 @@ def collect_counted(
     """``collect``, also returning how many episodes this call drove (0: all were reused).
 
     Concurrent callers (the jobs of a parallel sweep) queue on the dataset's lock: the first
-    drives the episodes, the others find them stored and drive none.
+    drives the episodes, the others find them stored and drive none. Damage is repaired, with a
+    warning naming the file: a missing or corrupt episode is recollected alone, a damaged
+    manifest rebuilt from the episode files.
     """
     fingerprint = plant.fingerprint
     key = content_key(fingerprint, data, knowledge)
     directory = dataset_root(data) / key
-    directory.mkdir(parents=True, exist_ok=True)
-    with _locked(directory):
-        manifest_path = directory / "manifest.json"
-        if manifest_path.exists():
-            manifest = _read_manifest(directory)
-            if manifest.get("key") != key:
-                raise DatasetError(f"data: {manifest_path} belongs to another dataset; delete it")
-        else:
-            manifest = {
-                "format": FORMAT_VERSION,
-                "key": key,
-                "data": data.content(),
-                "plant": fingerprint,
-                "driver_knowledge": dataclasses.asdict(knowledge),
-                "versions": _versions(),
-                "episodes": {},
-                "complete": False,
-            }
-        # Finished episodes are kept (resume); a file that fails its checksum stops us here.
-        _verify(directory, manifest)
-        lengths = data.episode_lengths()
-        todo = [i for i in range(data.episodes) if f"episode_{i:04d}" not in manifest["episodes"]]
-        if todo:
-            # Longest first: two workers finish together instead of one waiting on a long drive.
-            todo.sort(key=lambda i: -lengths[i])
-            bar = tqdm(
-                total=sum(lengths[i] for i in todo),
-                unit="step",
-                desc="collect",
-                disable=not progress,
-                smoothing=0.1,
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with _locked(directory):
+            try:
+                return directory, _collect_locked(plant, data, knowledge, directory, key, progress)
+            finally:
+                _remove_temporaries(directory)  # the workers have stopped by now
+    except OSError as error:
+        if error.errno in _NOT_WRITABLE and _intact(directory, key):
+            return directory, 0  # a complete dataset on a read-only disk is fine to use
+        raise _os_error(error, directory, data) from error
+
+
+def _intact(directory: Path, key: str) -> bool:
+    try:
+        manifest = _read_manifest(directory)
+    except (_ManifestError, OSError):
+        return False
+    return (
+        manifest is not None
+        and manifest["key"] == key
+        and manifest["complete"]
+        and not _verify(directory, manifest["episodes"])
+    )
+
+
+def _collect_locked(
+    plant: Plant,
+    data: DataConfig,
+    knowledge: DriverKnowledge,
+    directory: Path,
+    key: str,
+    progress: bool,
+) -> int:
+    """Repair, resume or reuse the dataset in ``directory`` (locked); the episodes driven."""
+    _remove_temporaries(directory)
+    manifest_path = directory / MANIFEST
+    lengths = data.episode_lengths()
+    try:
+        stored = _read_manifest(directory)
+    except _ManifestError as damaged:
+        log.warning("data: %s %s; rebuilding it from the episode files", manifest_path, damaged)
+        stored = None
+    if stored is not None and stored["key"] != key:
+        raise DatasetError(
+            f"data: {manifest_path} belongs to dataset {stored['key']}, not to {key} (its "
+            f"directory); delete {directory} to collect afresh"
+        )
+    recorded: dict[str, str] = {}  # checksums the recollected episodes must reproduce
+    if stored is None:
+        versions = _versions()
+        episodes = _episodes_from_files(directory, data, lengths, plant.dt)
+    else:
+        versions = stored["versions"]
+        episodes = dict(stored["episodes"])
+        for name, problem in _verify(directory, episodes).items():
+            path = directory / episodes[name]["file"]
+            log.warning(
+                "data: %s %s; recollecting %s alone (same seed, same bytes)", path, problem, name
             )
-            workers = min(data.workers, len(todo))
-            with _executor(workers, plant) as pool:
-                futures = [
-                    pool.submit(_collect_one, data, knowledge, i, lengths[i], str(directory))
-                    for i in todo
-                ]
-                for future in as_completed(futures):
-                    index, sha, steps, spun = future.result()
-                    manifest["episodes"][f"episode_{index:04d}"] = {
-                        "file": f"episode_{index:04d}.npz",
-                        "sha256": sha,
-                        "steps": steps,
-                        "spun": spun,
-                    }
-                    _write_manifest(directory, manifest)  # progress survives an interruption
-                    bar.update(lengths[index])
-            bar.close()
-        if not manifest["complete"]:
-            names = sorted(manifest["episodes"])
-            order = np.random.default_rng([data.seed, 3]).permutation(len(names))
-            shuffled = [names[i] for i in order]
-            counts = [data.split[s] for s in SPLITS]
-            bounds = np.cumsum([0, *counts])
-            manifest["split"] = {
-                s: sorted(shuffled[bounds[i] : bounds[i + 1]]) for i, s in enumerate(SPLITS)
-            }
-            train = [_load_episode(directory, n, manifest) for n in manifest["split"]["train"]]
-            manifest["normalizer"] = MinMaxNormalizer.fit(train).to_dict()
-            manifest["complete"] = True
-            _write_manifest(directory, manifest)
-    return directory, len(todo)
+            path.unlink(missing_ok=True)
+            recorded[name] = episodes.pop(name)["sha256"]
+    manifest = _manifest_body(key, data, plant.fingerprint, knowledge, versions, episodes)
+    todo = [i for i in range(data.episodes) if _episode_name(i) not in episodes]
+    if todo:
+        # Longest first: two workers finish together instead of one waiting on a long drive.
+        todo.sort(key=lambda i: -lengths[i])
+        bar = tqdm(
+            total=sum(lengths[i] for i in todo),
+            unit="step",
+            desc="collect",
+            disable=not progress,
+            smoothing=0.1,
+        )
+        with _pool(min(data.workers, len(todo)), plant) as pool:
+            futures = [
+                pool.submit(_collect_one, data, knowledge, i, lengths[i], str(directory))
+                for i in todo
+            ]
+            for future in as_completed(futures):
+                index, entry = future.result()
+                name = _episode_name(index)
+                if name in recorded and entry["sha256"] != recorded[name]:
+                    raise DatasetError(
+                        f"data: {directory / entry['file']} was recollected with other bytes "
+                        f"than it had: this machine does not reproduce the dataset; delete "
+                        f"{directory} to collect afresh"
+                    )
+                manifest["episodes"][name] = entry
+                manifest["episodes"] = dict(sorted(manifest["episodes"].items()))
+                _write_manifest(directory, manifest)  # progress survives an interruption
+                bar.update(lengths[index])
+        bar.close()
+    if stored is None or todo or not stored["complete"]:
+        names = sorted(manifest["episodes"])
+        order = np.random.default_rng([data.seed, 3]).permutation(len(names))
+        shuffled = [names[i] for i in order]
+        counts = [data.split[s] for s in SPLITS]
+        bounds = np.cumsum([0, *counts])
+        manifest["split"] = {
+            s: sorted(shuffled[bounds[i] : bounds[i + 1]]) for i, s in enumerate(SPLITS)
+        }
+        train = [_load_episode(directory, n, manifest) for n in manifest["split"]["train"]]
+        manifest["normalizer"] = MinMaxNormalizer.fit(train).to_dict()
+        manifest["complete"] = True
+        _write_manifest(directory, manifest)
+    return len(todo)
+
+
+def _episodes_from_files(
+    directory: Path, data: DataConfig, lengths: Sequence[int], dt: float
+) -> dict[str, dict[str, Any]]:
+    """Manifest entries of the episode files that verify on their own (no manifest to trust);
+    a file that does not is removed, with a warning, and recollected."""
+    episodes = {}
+    for index in range(data.episodes):
+        name = _episode_name(index)
+        path = directory / f"{name}.npz"
+        if not path.exists():
+            continue
+        try:
+            episodes[name] = _check_episode_file(path, lengths[index], dt)
+        except (ValueError, KeyError, zipfile.BadZipFile, EOFError) as error:
+            log.warning("data: %s is damaged (%s); recollecting %s alone", path, error, name)
+            path.unlink()
+    return episodes
 
 
 def _load_episode(directory: Path, name: str, manifest: dict[str, Any]) -> Episode:
@@ -366,19 +622,36 @@ def _load_episode(directory: Path, name: str, manifest: dict[str, Any]) -> Episo
             return Episode(
                 name, arrays["time_s"], arrays["states"], arrays["inputs"], arrays["poses"]
             )
-    except (OSError, ValueError, KeyError) as error:
-        raise DatasetError(f"data: cannot read {path} ({error}); delete it and rerun") from error
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
+        raise DatasetError(
+            f"data: cannot read {path} ({error}); {RERUN} to recollect it alone"
+        ) from error
 
 
 def load(directory: Path | str) -> Dataset:
-    """Load a complete dataset, checking every file against its checksum first."""
+    """Load a complete dataset, checking the manifest and every file against its checksum first.
+
+    Repairs are :func:`collect`'s (it knows the plant and the config); here a damaged file stops
+    the load with one line naming it and saying how to repair it.
+    """
     directory = Path(directory)
-    if not (directory / "manifest.json").exists():
-        raise DatasetError(f"data: {directory} has no manifest.json; it is not a dataset")
-    manifest = _read_manifest(directory)
-    if manifest.get("format") != FORMAT_VERSION or not manifest.get("complete"):
-        raise DatasetError(f"data: {directory} is incomplete or of another format; rerun collect")
-    _verify(directory, manifest)
+    path = directory / MANIFEST
+    try:
+        manifest = _read_manifest(directory)
+    except _ManifestError as damaged:
+        raise DatasetError(
+            f"data: {path} {damaged}; {RERUN} to rebuild it from the episode files"
+        ) from None
+    if manifest is None:
+        raise DatasetError(f"data: {directory} has no {MANIFEST}; it is not a dataset")
+    if not manifest["complete"]:
+        raise DatasetError(f"data: {directory} is incomplete; {RERUN} to finish it")
+    problems = _verify(directory, manifest["episodes"])
+    for name, problem in problems.items():
+        raise DatasetError(
+            f"data: {directory / manifest['episodes'][name]['file']} {problem}; {RERUN} to "
+            f"recollect {name} alone (same seed, same bytes)"
+        )
     splits = {
         s: [_load_episode(directory, n, manifest) for n in manifest["split"][s]] for s in SPLITS
     }

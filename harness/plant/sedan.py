@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
+import math
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -22,11 +24,59 @@ from harness.paths import MJCF_DIR
 from harness.plant import native
 from harness.plant.params import SedanParams
 
+log = logging.getLogger(__name__)
+
 MJCF_PATH: Path = MJCF_DIR / "sedan.xml"
 STEER_WHEEL_LIMIT_DEG = 450.0
 THROTTLE_MAX = 0.2
 BRAKE_MAX_MPA = 9.1
 CORNERS = ("fl", "fr", "rl", "rr")
+# MuJoCo's instability warnings: a NaN, inf or huge position, velocity or acceleration. MuJoCo
+# then resets the simulation to the model's initial state and carries on (its "autoreset"), so
+# the states stay finite and a diverged car would otherwise look like a car at rest.
+_BADQPOS, _BADQVEL, _BADQACC = (
+    int(mujoco.mjtWarning.mjWARN_BADQPOS),
+    int(mujoco.mjtWarning.mjWARN_BADQVEL),
+    int(mujoco.mjtWarning.mjWARN_BADQACC),
+)
+# What makes the explicit physics step diverge: stiff springs and light or heavy bodies for the
+# physics timestep. Named when no key differs from its default.
+STIFFNESS_KEYS = (
+    "plant.physics_timestep_s",
+    "plant.tire.vertical_stiffness_n_per_m",
+    "plant.tire.vertical_damping_n_s_per_m",
+    "plant.steering.servo_stiffness_nm_per_rad",
+    "plant.chassis.sprung_mass_kg",
+    "plant.chassis.payload_kg",
+)
+
+
+class PlantUnstableError(RuntimeError):
+    """The physics diverged (MuJoCo's instability warning): the plant's parameters are wrong."""
+
+
+@cache
+def _route_mujoco_warnings() -> None:
+    """MuJoCo's warnings to the log, not to stdout and a MUJOCO_LOG.TXT in the working
+    directory (the plant raises :class:`PlantUnstableError` for the ones that matter)."""
+    mujoco.set_mju_user_warning(lambda message: log.warning("MuJoCo: %s", message))
+
+
+def changed_keys(params: SedanParams) -> list[str]:
+    """``plant.<key>=<value>`` of every parameter that differs from the default sedan's."""
+    changed: list[str] = []
+
+    def walk(value: Any, default: Any, key: str) -> None:
+        if isinstance(value, dict):
+            for name in value:
+                walk(value[name], default.get(name), f"{key}.{name}")
+        elif value != default:
+            changed.append(f"{key}={value}")
+
+    ours, defaults = dataclasses.asdict(params), dataclasses.asdict(SedanParams())
+    ours.pop("name")
+    walk(ours, defaults, "plant")
+    return changed
 
 
 def build_model(params: SedanParams) -> mujoco.MjModel:
@@ -140,8 +190,11 @@ class Sedan:
             raise ValueError("give either params or SedanParams fields, not both")
         self.params = params if params is not None else SedanParams(**fields)
         native.install_callback()
+        _route_mujoco_warnings()
         self.model = build_model(self.params)
         self.data = mujoco.MjData(self.model)
+        # A live view of MuJoCo's warning counters (reset by mj_resetData): read every step.
+        self._warnings = self.data.warning.number
         self.dt: float = self.params.control_period_s
         self._substeps = self.params.substeps
         self._chassis = self.model.body("chassis").id
@@ -170,6 +223,7 @@ class Sedan:
         """Let the car sink onto its springs once; every reset starts from this rest pose."""
         mujoco.mj_resetData(self.model, self.data)
         mujoco.mj_step(self.model, self.data, nstep=int(2.0 / self.model.opt.timestep))
+        self._check_stable("while settling onto its springs")
         if not np.all(np.isfinite(self.data.qpos)):
             raise RuntimeError(f"plant {self.params.name!r} does not settle: check its parameters")
         self._rest_qpos = self.data.qpos.copy()
@@ -183,6 +237,8 @@ class Sedan:
         The plant is deterministic; ``seed`` is accepted so every component resets alike.
         """
         del seed
+        if not math.isfinite(speed_mps):
+            raise ValueError(f"speed_mps must be finite (got {speed_mps})")
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = self._rest_qpos
         if speed_mps:
@@ -204,7 +260,24 @@ class Sedan:
             self.clipped_inputs += 1
         self.data.ctrl[:] = clipped
         mujoco.mj_step(self.model, self.data, nstep=self._substeps)
+        warnings = self._warnings  # three integer reads: under a microsecond of a ~150 us step
+        if warnings[_BADQACC] or warnings[_BADQVEL] or warnings[_BADQPOS]:
+            self._check_stable("in a control step")
         return self.state
+
+    def _check_stable(self, when: str) -> None:
+        """Raise :class:`PlantUnstableError`, naming the keys to check, if MuJoCo warned that
+        the simulation diverged (and reset it) since the last :meth:`reset`."""
+        bad = [w for w in (_BADQACC, _BADQVEL, _BADQPOS) if self._warnings[w]]
+        if not bad:
+            return
+        warning = mujoco.mjtWarning(bad[0])
+        keys = changed_keys(self.params) or list(STIFFNESS_KEYS)
+        raise PlantUnstableError(
+            f"plant {self.params.name!r} diverged {when} (MuJoCo {warning.name}: NaN or huge "
+            f"values, simulation reset): check {', '.join(keys)}, or make "
+            "plant.physics_timestep_s smaller"
+        )
 
     @property
     def state(self) -> np.ndarray:

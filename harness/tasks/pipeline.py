@@ -29,6 +29,7 @@ Beside ``metrics.json`` it leaves the arrays behind its figures (``prediction_<e
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -46,10 +47,16 @@ from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
 from harness.references import Reference
 from harness.tracking import track
-from learners.base import Learner
+from learners.base import Learner, check_same_learner
 from learners.base import load as load_learner
 
 log = logging.getLogger(__name__)
+
+# Below about 1 m/s the tyres are in their slip-limited low-speed regime and nothing of the
+# handling the learners are for (cornering, load transfer, drag) shows; every working plant
+# passes it within the first seconds of every drive. Training data that never reaches it means
+# a plant that does not move (``plant.chassis.sprung_mass_kg=1e12``), not a dataset to fit.
+MIN_TRAIN_SPEED_MPS = 1.0
 
 
 class Pipeline:
@@ -82,21 +89,34 @@ class Pipeline:
             self.controllers[name] = make
         self.other_plants = dict(other_plants or {})
         self.model_path = model_path
-        if prediction_window_steps < 1 or prediction_window_s <= 0:
-            raise ValueError(
-                "task.prediction_window_steps and task.prediction_window_s must be > 0"
-            )
+        # Both before any data: a model file of another learner, a size beyond this machine.
+        self.loaded = self._load(model_path, learner, learner_name)
+        if self.loaded is None:
+            learner.check_size(self.data.max_steps)
+        _check_count("task.prediction_window_steps", prediction_window_steps)
+        if not (math.isfinite(prediction_window_s) and prediction_window_s > 0):
+            raise ValueError(f"task.prediction_window_s must be > 0 (got {prediction_window_s})")
         for name, reference in (references or {}).items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
-        self.window_steps, self.window_s = prediction_window_steps, prediction_window_s
+        self.window_steps, self.window_s = int(prediction_window_steps), prediction_window_s
         self.references = dict(references or {})
-        if robustness_repeats < 1:
-            raise ValueError(f"task.robustness_repeats must be >= 1 (got {robustness_repeats})")
-        self.robustness_repeats = robustness_repeats
+        _check_count("task.robustness_repeats", robustness_repeats)
+        self.robustness_repeats = int(robustness_repeats)
+
+    @staticmethod
+    def _load(path: str | None, learner: Learner, learner_name: str) -> Learner | None:
+        """The model file of ``task.model_path``, refused unless it is the configured learner."""
+        if not path:
+            return None
+        loaded = load_learner(path)
+        check_same_learner(loaded, learner, str(path), learner_name)
+        return loaded
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
+        if self.loaded is None:
+            check_training_data(dataset)
         sections: dict[str, Any] = {"data": data_metrics}
         learner, sections["training"] = self._learner(dataset, recorder, output_dir)
         sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
@@ -104,7 +124,7 @@ class Pipeline:
             learner, plant, recorder, output_dir
         )
         sections["spectrum"] = self._spectrum(learner, plant.dt, recorder, output_dir)
-        if getattr(getattr(learner, "random_layer", None), "enabled", False):
+        if learner.redraws_random_layer:
             repeated = robustness(
                 {self.learner_name: learner},
                 dataset.test,
@@ -128,9 +148,9 @@ class Pipeline:
     ) -> tuple[Learner, dict[str, Any]]:
         """Fit (or load ``model_path``), save the model and its loss curves."""
         start = time.perf_counter()
-        if self.model_path:
-            learner = load_learner(self.model_path)
-            source = str(Path(self.model_path).resolve())
+        if self.loaded is not None:
+            learner = self.loaded
+            source = str(Path(str(self.model_path)).resolve())
         else:
             learner = training_report.fit(
                 self.learner,
@@ -272,6 +292,25 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
+
+
+def _check_count(key: str, value: float) -> None:
+    """A whole number >= 1 (a float from the command line, ``1e3``, may say one)."""
+    if not (math.isfinite(value) and value >= 1 and float(value).is_integer()):
+        raise ValueError(f"{key} must be a whole number >= 1 (got {value})")
+
+
+def check_training_data(dataset: Dataset) -> None:
+    """Refuse to fit a dataset in which the car never moved (see ``MIN_TRAIN_SPEED_MPS``):
+    a fit on it scores perfectly (nothing to predict) and means nothing."""
+    fastest = max(float(abs(e.states[:, 0]).max()) for e in dataset.train)
+    if fastest < MIN_TRAIN_SPEED_MPS:
+        frames = sum(len(e) for e in dataset.train)
+        raise ValueError(
+            f"data: the car never reached {MIN_TRAIN_SPEED_MPS} m/s in the {frames} training "
+            f"frames of {dataset.path} (fastest {fastest:.3g} m/s): check the plant's keys "
+            "(plant.chassis.sprung_mass_kg, plant.powertrain.*, plant.brakes.*) and data.min_steps"
+        )
 
 
 def _not_lifted_linear(learner: Learner) -> str | None:

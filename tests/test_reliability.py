@@ -1,0 +1,297 @@
+"""Fail before the expensive part, in one line naming the key; never score a broken run.
+
+Each check here failed on the code before issue 14: controller, reference and extra-controller
+values were checked only after data and training (or named the wrong key), a controller period
+other than the plant's ran, a diverged MuJoCo simulation scored perfectly, a model file of
+another learner was reported as the configured one, absurd sizes grew memory until killed, and
+Hydra's own errors (a value of the wrong type) took several lines.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+
+from controllers import DEMPCConfig
+from harness.config import validate
+from harness.data.episode import Episode, MinMaxNormalizer
+from harness.data.store import DataConfig, Dataset
+from harness.paths import CONF_DIR
+from harness.plant import Sedan, SedanParams
+from harness.plant.params import ChassisParams, TireParams
+from harness.plant.sedan import PlantUnstableError
+from harness.report.jobs import read_run
+from harness.tasks.pipeline import Pipeline, check_training_data
+from learners.dictionaries import ThinPlateRBF
+from learners.dnn import DNN
+from learners.edmd import EDMD
+from tests.toydata import drive_episodes
+
+TINY = [
+    "data.episodes=3",
+    "data.min_steps=300",
+    "data.max_steps=400",
+    "data.split.train=1",
+    "data.split.validation=1",
+    "data.split.test=1",
+    "recorder=none",
+]
+
+
+def build_as_the_app(*overrides: str) -> None:
+    """What ``python -m harness`` does before the task runs: compose, validate, build."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*TINY, *overrides], return_hydra_config=True)
+    HydraConfig.instance().set_config(cfg)
+    validate(cfg)
+    instantiate(cfg.plant)
+    try:
+        instantiate(cfg.task)
+    except InstantiationException as error:  # the app prints the task's own error
+        raise error.__cause__ from None  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["controller.Np=3", "controller.Nc=7"], "controller.Nc (7) must be <= controller.Np (3)"),
+        (["controller.Q=-5"], "controller.Q must be positive definite"),
+        (
+            ["experiment=paper", "task.extra_controllers.de_mpc_long.Np=0"],
+            "task.extra_controllers.de_mpc_long.Np must be a positive integer (got 0)",
+        ),
+        (
+            ["task.references.double_lane_change.speed_mps=-1"],
+            "task.references.double_lane_change.speed_mps must be > 0 (got -1)",
+        ),
+        (
+            ["task.references.double_lane_change.standard=iso9999"],
+            "task.references.double_lane_change.standard must be one of",
+        ),
+        (
+            ["+task.references.double_lane_change.lanes=3"],
+            "unknown key task.references.double_lane_change.lanes",
+        ),
+        (["learner.training.lr=-1"], "learner.training.lr must be > 0 (got -1)"),
+        (["learner=edmd", "learner.dictionary.num_centers=-3"], "learner.dictionary.num_centers"),
+        (
+            ["controller.dt=0.02"],
+            "controller.dt (0.02) must equal plant.control_period_s (0.01)",
+        ),
+        (
+            ["plant.control_period_s=0.02"],
+            "controller.dt (0.01) must equal plant.control_period_s (0.02)",
+        ),
+        (
+            ["experiment=paper", "task.extra_controllers.de_mpc_long.dt=0.05"],
+            "task.extra_controllers.de_mpc_long.dt (0.05) must equal plant.control_period_s",
+        ),
+        (
+            ["experiment=generalization", "task.other_plants.sedan_wet.control_period_s=0.02"],
+            "task.other_plants.sedan_wet.control_period_s (0.02) must equal",
+        ),
+        (
+            ["experiment=generalization", "task.other_plants.sedan_wet.tire.road_friction=0"],
+            "task.other_plants.sedan_wet.tire.road_friction must be > 0 (got 0)",
+        ),
+        # Sizes no machine has, refused before any data (point 10).
+        (
+            ["learner=edmd", "learner.dictionary.num_centers=1000000000"],
+            "learner.dictionary.num_centers: EDMD with 1000000000 observables on drives of 400",
+        ),
+        (
+            ["learner=dnn", "learner.hidden=[1000000000]"],
+            "learner.hidden / learner.training.batch_size: dnn with",
+        ),
+        (
+            ["learner=deep_edmd", "learner.lifted_dim=1000000000"],
+            "learner.lifted_dim / learner.encoder_hidden / learner.decoder_hidden",
+        ),
+        (
+            ["controller.Np=100000", "controller.Nc=100000"],
+            "controller.Np and controller.Nc: the condensed QP of Np = 100000, Nc = 100000",
+        ),
+    ],
+)
+def test_every_part_of_the_config_is_checked_before_the_first_episode(
+    overrides: list[str], message: str
+) -> None:
+    with pytest.raises(ValueError) as info:
+        build_as_the_app(*overrides)
+    assert message in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_a_period_check_applies_only_to_what_the_task_uses() -> None:
+    build_as_the_app("task=characterize", "plant.control_period_s=0.02")  # no controller used
+    build_as_the_app("controller.dt=0.02", "plant.control_period_s=0.02")  # both agree
+
+
+def run_harness(tmp: Path, *overrides: str) -> tuple[subprocess.CompletedProcess, float]:
+    start = time.perf_counter()
+    result = subprocess.run(
+        [sys.executable, "-m", "harness", *TINY, f"data.root={tmp}/datasets", *overrides],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    return result, time.perf_counter() - start
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key"),
+    [
+        (["controller.Np=3", "controller.Nc=7"], "controller.Np"),
+        (["plant.tire.road_friction=abc"], "plant.tire.road_friction"),  # Hydra's own error
+        (["plant.tire.vertical_stiffness_n_per_m=1e12"], "plant.tire.vertical_stiffness_n_per_m"),
+    ],
+)
+def test_the_command_line_fails_in_one_line_with_no_data_and_no_training(
+    tmp_path: Path, overrides: list[str], key: str
+) -> None:
+    run_dir = tmp_path / "run"
+    result, seconds = run_harness(tmp_path, *overrides, f"hydra.run.dir={run_dir}")
+    assert result.returncode == 2, result.stderr[-2000:]
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and key in errors[0], result.stderr[-2000:]
+    assert not any(line.startswith(("Traceback", "  File")) for line in result.stderr.splitlines())
+    datasets = tmp_path / "datasets"
+    assert not datasets.exists() or not any(datasets.iterdir())  # nothing collected
+    assert not list(tmp_path.rglob("model_*.pt")) and not list(tmp_path.rglob("*.ckpt"))
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()  # MuJoCo's warning went to the log
+    assert seconds < 120  # imports and checks only (a loaded 2-core machine: ~10 s)
+
+
+def test_a_rerun_of_a_failed_job_leaves_no_stale_error(tmp_path: Path) -> None:
+    run_dir = tmp_path / "job"
+    failed, _ = run_harness(tmp_path, "task=collect", "controller.Q=-5", f"hydra.run.dir={run_dir}")
+    assert failed.returncode == 2 and (run_dir / "error.json").exists()
+    assert read_run(run_dir).error is not None
+    again, _ = run_harness(
+        tmp_path,
+        "task=collect",
+        "data.min_steps=100",
+        "data.max_steps=150",
+        f"hydra.run.dir={run_dir}",
+    )
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert not (run_dir / "error.json").exists()
+    run = read_run(run_dir)
+    assert run.error is None and "data" in json.loads((run_dir / "metrics.json").read_text())
+
+
+# -- the plant: a diverged simulation is an error, never a quiet reset (point 7) ----------------
+
+
+@pytest.mark.parametrize(
+    ("params", "key"),
+    [
+        (
+            SedanParams(tire=TireParams(vertical_stiffness_n_per_m=1e12)),
+            "plant.tire.vertical_stiffness_n_per_m=1000000000000.0",
+        ),
+        (  # settles, then diverges in the first turn
+            SedanParams(chassis=ChassisParams(anti_roll_front_n_per_m=1e10)),
+            "plant.chassis.anti_roll_front_n_per_m=10000000000.0",
+        ),
+    ],
+)
+def test_a_plant_that_diverges_names_the_keys_to_check(params: SedanParams, key: str) -> None:
+    with pytest.raises(PlantUnstableError) as info:
+        plant = Sedan(params)
+        for _ in range(500):
+            plant.step((200.0, 0.2))
+    assert key in str(info.value) and "mjWARN_BAD" in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_a_divergence_during_a_drive_is_an_error_not_a_reset(sedan: Sedan) -> None:
+    sedan.reset()
+    sedan.data.qvel[:] = 1e200  # what a diverging integration reaches
+    with pytest.raises(PlantUnstableError, match="in a control step"):
+        sedan.step((0.0, 0.0))
+    x = sedan.reset()  # and the plant works again after a reset
+    assert np.all(np.isfinite(sedan.step((0.0, 0.1)))) and np.all(x == 0)
+
+
+def test_reset_refuses_a_non_finite_speed(sedan: Sedan) -> None:
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="speed_mps must be finite"):
+            sedan.reset(speed_mps=bad)
+
+
+# -- data too little to learn from -----------------------------------------------------------
+
+
+def _standing(name: str, frames: int) -> Episode:
+    states = np.zeros((frames, 3))
+    states[:, 0] = np.linspace(0, 1e-11, frames)
+    inputs = np.tile([10.0, 0.2], (frames, 1))
+    return Episode(name, np.arange(frames) * 0.01, states, inputs, np.zeros((frames, 3)))
+
+
+def test_a_dataset_in_which_the_car_never_moved_is_refused(tmp_path: Path) -> None:
+    """``plant.chassis.sprung_mass_kg=1e12``: the car stands; a fit on it would score 1e-8."""
+    plant = Sedan(SedanParams(chassis=ChassisParams(sprung_mass_kg=1e12)))
+    for _ in range(300):
+        x = plant.step((0.0, 0.2))
+    assert abs(x[0]) < 1e-3  # the plant does not diverge: it does not move
+    train = [_standing("episode_0000", 400)]
+    dataset = Dataset(tmp_path, {}, train, train, train, MinMaxNormalizer.fit(train))
+    with pytest.raises(ValueError, match=r"never reached 1.0 m/s.*plant.chassis.sprung_mass_kg"):
+        check_training_data(dataset)
+
+
+def test_edmd_refuses_fewer_pairs_than_unknowns() -> None:
+    (episode,) = drive_episodes(1, duration_s=0.08)  # 9 frames, 8 pairs
+    normalizer = MinMaxNormalizer.fit([episode])
+    with pytest.raises(ValueError, match=r"106 unknowns per row of \[A B\] but .* only 8 one-step"):
+        EDMD().fit([episode], [], normalizer)
+    EDMD(ThinPlateRBF(0)).fit([episode], [], normalizer)  # DMD: 6 unknowns, 8 pairs
+
+
+# -- a model file is the configured learner, or refused (point 8) -----------------------------
+
+
+@pytest.fixture(scope="module")
+def edmd_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    episodes = drive_episodes(2, duration_s=5.0)
+    learner = EDMD(ThinPlateRBF(10)).fit(episodes[:1], [], MinMaxNormalizer.fit(episodes[:1]))
+    return learner.save(tmp_path_factory.mktemp("models") / "model_edmd.pt")
+
+
+def _pipeline(learner, name: str, path: Path) -> Pipeline:
+    data = DataConfig(episodes=3, split={"train": 1, "validation": 1, "test": 1})
+    return Pipeline(data, learner, name, model_path=str(path))
+
+
+def test_a_model_file_of_another_learner_is_refused_naming_both(edmd_file: Path) -> None:
+    with pytest.raises(ValueError) as info:
+        _pipeline(DNN(), "dnn", edmd_file)
+    message = str(info.value)
+    assert "holds a EDMD model" in message and "learner=dnn configures a DNN" in message
+
+
+def test_a_model_file_with_other_hyperparameters_is_refused(edmd_file: Path) -> None:
+    with pytest.raises(ValueError, match=r"learner.seed=0, but learner=edmd sets learner.seed=1"):
+        _pipeline(EDMD(ThinPlateRBF(10), seed=1), "edmd", edmd_file)
+    with pytest.raises(ValueError, match=r"learner.dictionary.num_centers=10"):
+        _pipeline(EDMD(ThinPlateRBF(100)), "edmd", edmd_file)
+    assert _pipeline(EDMD(ThinPlateRBF(10)), "edmd", edmd_file).loaded is not None
+
+
+def test_the_qp_size_check_lets_the_papers_horizons_pass() -> None:
+    DEMPCConfig(Np=60, Nc=50)
+    with pytest.raises(ValueError, match=r"controller.Np and controller.Nc"):
+        DEMPCConfig(Np=10**12, Nc=7)
