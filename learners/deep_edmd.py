@@ -347,13 +347,18 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         """Replace A, B by the least-squares fit of z_{k+1} = A z_k + B u_k on the lifted
         training data, keeping the encoder and decoder (``refit_koopman_lstsq``; also usable on
         a trained or loaded model). The trained A, B serve the decoder's multi-step loss; the
-        refit makes C z, what DE-MPC predicts with, accurate over its horizon."""
+        refit makes C z, what DE-MPC predicts with, accurate over its horizon.
+
+        The model then is ``learner=deep_edmd_lstsq`` in every hyperparameter (refit, linear
+        read-out), so its saved file loads under that name and predicts as DE-MPC does."""
         views = self.params_.views()
         theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
         size = theta.shape[1]
         views["koopman.A.weight"].copy_(torch.from_numpy(theta[:size].T))
         views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
         self.refit_koopman_lstsq = True
+        self.prediction_output = "linear"
+        self._hyperparameters.update(refit_koopman_lstsq=True, prediction_output="linear")
         self._read_matrices(train)
         return self
 

@@ -15,6 +15,8 @@ from harness import training_report
 from harness.data.episode import MinMaxNormalizer
 from harness.recorder import Recorder
 from learners import DNN, DeepEDMD
+from learners.base import check_same_learner
+from learners.base import load as load_learner
 from learners.deep_edmd import LossWeights, deep_edmd_loss_terms, deep_edmd_step
 from learners.dnn import DNNLossWeights, dnn_loss_terms, dnn_step
 from learners.nets import Dense
@@ -336,7 +338,7 @@ def test_the_random_layer_is_redrawn_per_seed_and_nominal_without_one(cls, data:
 
 
 def test_the_least_squares_refit_solves_the_normal_equations_of_the_lifted_data(
-    data: dict,
+    data: dict, tmp_path: Path
 ) -> None:
     """W^T (Y - W Theta) = 0 for regressors W = [z_k v_k], targets Y = z_{k+1}, Theta = [A B]^T
     (up to the float32 storage of A, B); the trained A, B are far from it."""
@@ -361,9 +363,22 @@ def test_the_least_squares_refit_solves_the_normal_equations_of_the_lifted_data(
     assert normal_equations(trained) > 1e-3
     # the refit is a post-processing of the same network: applied to a trained model it gives
     # exactly what training with refit_koopman_lstsq gives
+    linear = small(DeepEDMD, refit_koopman_lstsq=True, prediction_output="linear").fit(*args)
     afterwards = trained.refit_koopman(data["train"])
     np.testing.assert_array_equal(afterwards.A_, refit.A_)
     np.testing.assert_array_equal(afterwards.B_, refit.B_)
+    # ... and is learner=deep_edmd_lstsq in every hyperparameter, so its file loads as that
+    # learner (task.model_path) and predicts with C z, as DE-MPC does
+    assert afterwards.hyperparameters == linear.hyperparameters
+    loaded = load_learner(afterwards.save(tmp_path / "refit.pt"))
+    check_same_learner(loaded, linear, "refit.pt", "deep_edmd_lstsq")
+    episode = data["validation"][0]
+    np.testing.assert_allclose(
+        loaded.predict(episode.states[0], episode.inputs[:-1]),
+        linear.predict(episode.states[0], episode.inputs[:-1]),
+        rtol=0,
+        atol=1e-9,
+    )
 
 
 def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_cores(
