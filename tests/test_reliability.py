@@ -32,6 +32,7 @@ from harness.plant.params import ChassisParams, TireParams
 from harness.plant.sedan import PlantUnstableError
 from harness.report.jobs import read_run
 from harness.tasks.pipeline import Pipeline, check_training_data
+from learners.bilinear import BilinearEDMD
 from learners.dictionaries import ThinPlateRBF
 from learners.dnn import DNN
 from learners.edmd import EDMD
@@ -256,9 +257,12 @@ def test_a_dataset_in_which_the_car_never_moved_is_refused(tmp_path: Path) -> No
 def test_edmd_refuses_fewer_pairs_than_unknowns() -> None:
     (episode,) = drive_episodes(1, duration_s=0.08)  # 9 frames, 8 pairs
     normalizer = MinMaxNormalizer.fit([episode])
-    with pytest.raises(ValueError, match=r"106 unknowns per row of \[A B\] but .* only 8 one-step"):
+    with pytest.raises(ValueError, match=r"EDMD .* 106 unknowns per row .* only 8 one-step"):
         EDMD().fit([episode], [], normalizer)
     EDMD(ThinPlateRBF(0)).fit([episode], [], normalizer)  # DMD: 6 unknowns, 8 pairs
+    # bilinear EDMD counts its input-times-state columns too: 4 + 2 + 2 * 3 = 12 > 8
+    with pytest.raises(ValueError, match=r"BilinearEDMD .* 12 unknowns per row"):
+        BilinearEDMD(ThinPlateRBF(0)).fit([episode], [], normalizer)
 
 
 # -- a model file is the configured learner, or refused (point 8) -----------------------------
