@@ -28,7 +28,7 @@ def test_the_reference_line_driven_exactly_clears_every_cone(standard: str) -> N
     assert isinstance(reference, CourseReference)
     course = reference.course()
     poses = centre_line_poses(course)
-    metrics = path_metrics(course, poses, constant_speed(poses), **BODY)
+    metrics = path_metrics(course, poses, constant_speed(poses))
     assert metrics["passed"] and metrics["cones_hit"] == 0 and metrics["cones"] > 20
     assert metrics["max_lateral_deviation_m"] == pytest.approx(0.0, abs=1e-9)
     assert metrics["exit_heading_error_rad"] == pytest.approx(0.0, abs=1e-6)
@@ -47,7 +47,7 @@ def test_the_iso_3888_1_lanes_scale_with_the_car_and_lane_3_is_offset() -> None:
 def test_a_car_that_keeps_straight_knocks_down_lane_3s_near_cones_and_fails() -> None:
     course = DoubleLaneChange().course()
     poses = centre_line_poses(course) * [1.0, 0.0, 0.0]
-    metrics = path_metrics(course, poses, constant_speed(poses), **BODY)
+    metrics = path_metrics(course, poses, constant_speed(poses))
     assert not metrics["passed"]
     assert metrics["max_lateral_deviation_m"] == pytest.approx(3.5, abs=1e-6)
     cones, sides = course.cones()
@@ -64,18 +64,18 @@ def test_a_cone_is_hit_by_the_body_not_the_centre() -> None:
     x = np.arange(0.0, 100.0, 0.1)
     for shift, hits in ((0.15, 0), (0.25, 1)):
         poses = np.stack([x, np.full_like(x, shift), np.zeros_like(x)], axis=1)
-        metrics = path_metrics(course, poses, constant_speed(poses), **BODY)
+        metrics = path_metrics(course, poses, constant_speed(poses))
         assert (metrics["cones_hit"] > 0) == bool(hits)
         assert metrics["max_lateral_deviation_m"] == pytest.approx(shift)
     # yawed 8 degrees with its centre on the line: the corners reach 1.21 m sideways
     poses = np.stack([x, np.zeros_like(x), np.full_like(x, np.radians(8.0))], axis=1)
-    assert path_metrics(course, poses, constant_speed(poses), **BODY)["cones_hit"] > 0
+    assert path_metrics(course, poses, constant_speed(poses))["cones_hit"] > 0
 
 
 def test_a_car_that_never_reaches_the_exit_does_not_pass() -> None:
     course = DoubleLaneChange().course()
     poses = centre_line_poses(course)[: len(course.centre_x_m) // 2]
-    metrics = path_metrics(course, poses, constant_speed(poses), **BODY)
+    metrics = path_metrics(course, poses, constant_speed(poses))
     assert metrics["cones_hit"] == 0
     assert not metrics["reached_exit"] and not metrics["passed"]
     assert metrics["exit_speed_mps"] is None and metrics["exit_heading_error_rad"] is None
@@ -84,7 +84,7 @@ def test_a_car_that_never_reaches_the_exit_does_not_pass() -> None:
 def test_the_top_view_draws_every_run(tmp_path: Path) -> None:
     course = DoubleLaneChange().course()
     runs = {"line": centre_line_poses(course), "off": centre_line_poses(course, 0.6)}
-    plot_course(course, runs, tmp_path / "course.png", **BODY)
+    plot_course(course, runs, tmp_path / "course.png")
     assert (tmp_path / "course.png").stat().st_size > 10_000
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from harness.figures import save_figure
+from harness.recorder import Recorder
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,8 @@ class Course:
     centre_x_m: np.ndarray  # (K,) increasing
     centre_y_m: np.ndarray  # (K,)
     lanes: tuple[Lane, ...]
+    vehicle_length_m: float = 4.6  # the body judged against the cones, centred on the pose
+    vehicle_width_m: float = 1.8
     cone_spacing_m: float = 2.5
 
     @property
@@ -79,6 +82,7 @@ class Course:
         cones, sides = self.cones()
         lanes = np.array([[ln.start_m, ln.end_m, ln.right_m, ln.left_m] for ln in self.lanes])
         return {
+            "vehicle_size_m": np.array([self.vehicle_length_m, self.vehicle_width_m]),
             "centre_x_m": self.centre_x_m,
             "centre_y_m": self.centre_y_m,
             "lanes": lanes,
@@ -91,7 +95,9 @@ class Course:
         lanes = tuple(
             Lane(f"lane {2 * i + 1}", *map(float, row)) for i, row in enumerate(arrays["lanes"])
         )
-        return cls(np.asarray(arrays["centre_x_m"]), np.asarray(arrays["centre_y_m"]), lanes)
+        length, width = map(float, arrays["vehicle_size_m"])
+        x, y = np.asarray(arrays["centre_x_m"]), np.asarray(arrays["centre_y_m"])
+        return cls(x, y, lanes, length, width)
 
 
 def body_corners(poses: np.ndarray, length_m: float, width_m: float) -> np.ndarray:
@@ -134,20 +140,13 @@ def cones_hit(course: Course, poses: np.ndarray, length_m: float, width_m: float
     return np.any(hit & np.isfinite(low), axis=0)
 
 
-def path_metrics(
-    course: Course,
-    poses: np.ndarray,
-    states: np.ndarray,
-    *,
-    length_m: float,
-    width_m: float,
-) -> dict[str, Any]:
+def path_metrics(course: Course, poses: np.ndarray, states: np.ndarray) -> dict[str, Any]:
     """``path.*`` of a run (poses (T, 3) X, Y, yaw; states (T, 3) vx, vy, yaw rate), SI."""
     poses, states = np.asarray(poses, dtype=float), np.asarray(states, dtype=float)
     on_course = (poses[:, 0] >= course.entry_m) & (poses[:, 0] <= course.exit_m)
     centre_y, heading = course.centre_at(poses[:, 0])
     deviation = (poses[:, 1] - centre_y) * np.cos(heading)
-    hit = cones_hit(course, poses, length_m, width_m)
+    hit = cones_hit(course, poses, course.vehicle_length_m, course.vehicle_width_m)
     beyond = np.flatnonzero(poses[:, 0] >= course.exit_m)
     reached = beyond.size > 0
     exit_heading = exit_speed = None
@@ -169,24 +168,37 @@ def path_metrics(
     }
 
 
+def record_course(recorder: Recorder, name: str, course: Course) -> None:
+    """The course in rollout ``name``'s 3D view: cones (orange), lane lines and centre line."""
+    cones, _ = course.cones()
+    recorder.scene(name, "cones", points=cones, color=(255, 140, 0))
+    edges = [
+        np.array([[lane.start_m, y], [lane.end_m, y]])
+        for lane in course.lanes
+        for y in (lane.left_m, lane.right_m)
+    ]
+    recorder.scene(name, "lanes", strips=edges, color=(240, 240, 240))
+    centre = np.column_stack([course.centre_x_m, course.centre_y_m])[::10]
+    recorder.scene(name, "centre_line", strips=[centre], color=(90, 90, 90))
+
+
 def plot_course(
     course: Course,
     paths: Mapping[str, np.ndarray],
     path: Path,
     *,
-    length_m: float,
-    width_m: float,
     title: str = "",
 ) -> None:
     """Top view: cones (red where any run hit them), lane lines, the centre line and each run's
     path (poses (T, 3)), with the car's outline every 10 m along the course."""
-    fig = Figure(figsize=(12, 4.2))
+    fig = Figure(figsize=(12, 4.5))
     ax = fig.subplots()
     cones, _ = course.cones()
     ax.plot(course.centre_x_m, course.centre_y_m, "k--", lw=0.8, label="centre line")
     for lane in course.lanes:
         for y in (lane.left_m, lane.right_m):
             ax.plot([lane.start_m, lane.end_m], [y, y], color="0.6", lw=0.6)
+    length_m, width_m = course.vehicle_length_m, course.vehicle_width_m
     hit_any = np.zeros(len(cones), dtype=bool)
     for i, (label, poses) in enumerate(paths.items()):
         poses = np.asarray(poses, dtype=float)
@@ -197,16 +209,19 @@ def plot_course(
         marks = np.searchsorted(poses[:, 0], np.arange(course.entry_m, course.exit_m, 10.0))
         for corners in body_corners(poses[marks[marks < len(poses)]], length_m, width_m):
             ax.fill(corners[:, 0], corners[:, 1], color=color, alpha=0.12, lw=0)
-    ax.scatter(*cones[~hit_any].T, s=14, marker="^", color="orange", label="cone", zorder=3)
-    if hit_any.any():
-        ax.scatter(*cones[hit_any].T, s=30, marker="^", color="red", label="cone hit", zorder=3)
+    standing, down = cones[~hit_any], cones[hit_any]
+    ax.scatter(standing[:, 0], standing[:, 1], s=14, marker="^", color="orange", label="cone")
+    if len(down):
+        ax.scatter(down[:, 0], down[:, 1], s=30, marker="^", color="red", label="cone hit")
     ax.set_xlim(course.entry_m - 15, course.exit_m + 15)
-    ax.set_aspect("equal")
+    lanes_y = [y for lane in course.lanes for y in (lane.left_m, lane.right_m)]
+    ax.set_ylim(max(-8.0, min(lanes_y) - 2.0), min(12.0, max(lanes_y) + 2.0))
+    ax.set_aspect(3.0)  # Y stretched: the course is 150 m long and 6 m wide
     ax.set_xlabel("X [m]")
-    ax.set_ylabel("Y [m]")
+    ax.set_ylabel("Y [m] (3× stretched)")
     if title:
         ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=7, ncols=2)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.3), fontsize=8, ncols=4)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     save_figure(fig, path)

@@ -104,7 +104,9 @@ def double_lane_change_course(
         vehicle_length_m=vehicle_length_m,
         run_in_m=run_in_m,
     )
-    return Course(x, y, _lanes(standard, vehicle_width_m, run_in_m))
+    return Course(
+        x, y, _lanes(standard, vehicle_width_m, run_in_m), vehicle_length_m, vehicle_width_m
+    )
 
 
 def _lanes(standard: str, width_m: float, run_in_m: float) -> tuple[Lane, ...]:

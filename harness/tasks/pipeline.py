@@ -35,7 +35,10 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from harness import spectrum, step_response, training_report
+from harness.artifacts import save_arrays
 from harness.config import as_object
 from harness.data.collect import prepare
 from harness.data.driver import DriverKnowledge
@@ -45,7 +48,8 @@ from harness.interfaces import BilinearModel, LiftedModel
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
-from harness.references import Reference
+from harness.references import CourseReference, Reference
+from harness.references.course import path_metrics, plot_course, record_course
 from harness.tracking import track
 from learners.base import Learner, check_same_learner
 from learners.base import load as load_learner
@@ -210,26 +214,45 @@ class Pipeline:
             name: (reference.label(name, episodes), reference.build(plant.dt, episodes))
             for name, reference in self.references.items()
         }
+        courses = {
+            name: reference.course()
+            for name, reference in self.references.items()
+            if isinstance(reference, CourseReference)
+        }
+        paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
                 controller = make_controller(learner, plant.dt)
                 stem = f"tracking_{controller_name}_{name}"
-                metrics, _ = track(
+                rollout = f"{prefix}tracking/{controller_name}/{label}"
+                metrics, run = track(
                     plant,
                     controller,
                     reference,
-                    name=f"{prefix}tracking/{controller_name}/{label}",
+                    name=rollout,
                     recorder=recorder,
                     figure_path=output_dir / f"{stem}.png",
                     arrays_path=output_dir / f"{stem}.npz",
+                    tab_priority=2 if name in courses else 1,  # the recording opens on a course
                 )
+                if name in courses:
+                    metrics["path"] = path_metrics(courses[name], run.poses, run.states)
+                    record_course(recorder, rollout, courses[name])
+                    paths[name][controller_name] = run.poses
+                    log.info(
+                        "%s%s on the %s course: %s", prefix, controller_name, label, metrics["path"]
+                    )
                 runs[label] = metrics
                 log.info(
                     "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
                 )
             by_controller[controller_name] = runs
+        for name, course in courses.items():
+            save_arrays(output_dir / f"course_{name}.npz", **course.as_arrays())
+            title = f"{self.learner_name}: {name} (top view)"
+            plot_course(course, paths[name], output_dir / f"course_{name}.png", title=title)
         first = next(iter(by_controller.values()))
         return {
             **next(iter(first.values())),
