@@ -100,11 +100,13 @@ class Pipeline:
         _check_count("task.prediction_window_steps", prediction_window_steps)
         if not (math.isfinite(prediction_window_s) and prediction_window_s > 0):
             raise ValueError(f"task.prediction_window_s must be > 0 (got {prediction_window_s})")
-        for name, reference in (references or {}).items():
+        # null leaves a reference out (an experiment replacing the default's lane change)
+        references = {k: v for k, v in (references or {}).items() if v is not None}
+        for name, reference in references.items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
         self.window_steps, self.window_s = int(prediction_window_steps), prediction_window_s
-        self.references = dict(references or {})
+        self.references = references
         _check_count("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
 
@@ -238,7 +240,10 @@ class Pipeline:
                     tab_priority=2 if name in courses else 1,  # the recording opens on a course
                 )
                 if name in courses:
-                    metrics["path"] = path_metrics(courses[name], run.poses, run.states)
+                    metrics["path"] = {
+                        **path_metrics(courses[name], run.poses, run.states),
+                        "reference_speed_mps": float(reference[0, 0]),
+                    }
                     record_course(recorder, rollout, courses[name])
                     paths[name][controller_name] = run.poses
                     log.info(
