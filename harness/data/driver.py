@@ -215,6 +215,12 @@ class SyntheticDriver:
             return min(0.08 * error + 0.05, THROTTLE_MAX) if error > 0 else 0.02
         return max(0.6 * error, -2.0)  # gentle braking to come down to the cruise speed
 
+    def spinning(self, x: np.ndarray) -> bool:
+        """The car has spun (sideslip beyond ``spin_sideslip_deg``) or rolls backwards: the
+        drive ends here (``drive_episode`` keeps it up to this frame)."""
+        sideslip = math.degrees(math.atan2(x[1], max(abs(x[0]), 1.0)))
+        return abs(sideslip) > self.config.spin_sideslip_deg or x[0] < -0.5
+
     def __call__(self, t: float, x: np.ndarray) -> tuple[float, float]:
         cfg = self.config
         if t >= self._longitudinal_end:
@@ -223,8 +229,7 @@ class SyntheticDriver:
             self._new_lateral(t, x)
         speed = x[0]
         sideslip = math.degrees(math.atan2(x[1], max(abs(speed), 1.0)))
-        if abs(sideslip) > cfg.spin_sideslip_deg or speed < -0.5:
-            self.spun = True
+        self.spun = self.spun or self.spinning(x)
         recovering = abs(sideslip) > cfg.recovery_sideslip_deg and speed > 3.0
         steer_target = 0.0 if recovering else self._steer_target(t, x)
         pedal_target = 0.0 if recovering else self._pedal_target(t, x)

@@ -67,6 +67,7 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from harness.files import write_atomic, write_text_atomic
 from harness.interfaces import Plant
 from harness.plant.native import cache_dir
+from harness.rollout import NO_INFO, closed_loop
 
 FORMAT_VERSION = 1
 SPLITS = ("train", "validation", "test")
@@ -317,7 +318,8 @@ def _episode_seed(data: DataConfig, index: int) -> np.random.Generator:
 def drive_episode(
     plant: Plant, data: DataConfig, knowledge: DriverKnowledge, index: int, steps: int
 ) -> dict[str, np.ndarray | bool]:
-    """One episode from rest, driven by the synthetic driver; stops early if the car spins."""
+    """One episode from rest, driven by the synthetic driver; stops early if the car spins
+    (the drive is kept up to the spin, not the spin itself)."""
     driver = SyntheticDriver(
         data.driver,
         _episode_seed(data, index),
@@ -325,24 +327,21 @@ def drive_episode(
         road_friction=knowledge.road_friction,
         steering_ratio=knowledge.steering_ratio,
     )
-    states = np.empty((steps, 3))
-    inputs = np.empty((steps, 2))
-    poses = np.empty((steps, 3))
-    x = plant.reset(seed=index)
-    n = steps
-    for k in range(steps):
-        states[k], poses[k] = x, plant.pose
-        inputs[k] = driver(k * plant.dt, x)
-        if driver.spun:  # keep the drive up to the spin, not the spin itself
-            n = max(k, 2)
-            break
-        x = plant.step(inputs[k])
+    run = closed_loop(
+        plant,
+        lambda x, t: (driver(t, x), NO_INFO),
+        steps,
+        seed=index,
+        stop=lambda t, x: driver.spinning(x),
+        keep_stop_frame=False,
+        act_on_last=True,  # every recorded frame holds the input the driver applied there
+    )
     return {
-        "time_s": np.arange(n) * plant.dt,
-        "states": states[:n],
-        "inputs": inputs[:n],
-        "poses": poses[:n],
-        "spun": driver.spun,
+        "time_s": run.time_s,
+        "states": run.states,
+        "inputs": run.inputs,
+        "poses": run.poses,
+        "spun": run.stopped,
     }
 
 
