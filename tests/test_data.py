@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.data.coverage import sawtooth_frames, steering_reversals
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
 from harness.data.store import (
     DataConfig,
@@ -16,6 +17,7 @@ from harness.data.store import (
     _write_manifest,
     collect,
     content_key,
+    drive_episode,
     load,
 )
 from harness.interfaces import Plant
@@ -114,6 +116,81 @@ def test_bad_data_values_name_their_key(tmp_path: Path) -> None:
         DriverConfig(steer_rate_deg_per_s=-1.0)
     with pytest.raises(ValueError, match=r"data\.driver\.segment_duration_s"):
         DriverConfig(segment_duration_s=(1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match=r"data\.driver\.recovery_exit_sideslip_deg \(9"):
+        DriverConfig(recovery_exit_sideslip_deg=9.0)
+    with pytest.raises(ValueError, match=r"data\.start_speed_mps must be \[low, high\]"):
+        tiny(tmp_path, start_speed_mps=[20.0, 5.0])
+    with pytest.raises(ValueError, match=r"data\.start_speed_mps .*max_speed_mps \(33"):
+        tiny(tmp_path, start_speed_mps=[0.0, 40.0])
+
+
+def rear_slip_state(speed: float, rear_slip_deg: float, yaw_rate: float = 0.2) -> np.ndarray:
+    """A state whose rear-axle sideslip (half a wheelbase, 1.35 m, behind the CG) is given."""
+    vy = speed * np.tan(np.radians(rear_slip_deg)) + 1.35 * yaw_rate
+    return np.array([speed, vy, yaw_rate])
+
+
+def test_the_driver_recovers_from_a_rear_slide_with_hysteresis() -> None:
+    driver = SyntheticDriver(DriverConfig(), np.random.default_rng(0), 0.01, road_friction=0.9)
+    driver(0.0, rear_slip_state(20.0, 0.0))
+    seen = []
+    for slip in (5.0, 9.0, 7.0, 5.0, 3.5, 2.5, 5.0, 7.9, 8.5):
+        driver(0.01, rear_slip_state(20.0, slip))
+        seen.append(driver.recovering)
+    # Enters above 8 deg, stays in down to 3 deg, stays out until 8 deg again.
+    assert seen == [False, True, True, True, True, False, False, False, True]
+    steer, pedal = driver.steer, driver.pedal
+    driver(0.02, rear_slip_state(20.0, 9.0))
+    # Straightening the wheel at twice the normal rate (7.2 deg a step) and lifting off.
+    assert abs(driver.steer) < max(abs(steer) - 5.0, 3.0)
+    assert driver.pedal <= max(pedal, 0.0)
+
+
+def test_a_gripping_turn_at_walking_pace_is_not_a_slide() -> None:
+    """At 4 m/s and r = 0.8 rad/s every tyre grips with 12 deg of sideslip at the CG (the
+    geometry's, atan(b r / v)): the rear axle's is zero, and the driver keeps steering."""
+    driver = SyntheticDriver(DriverConfig(), np.random.default_rng(0), 0.01, road_friction=0.9)
+    x = rear_slip_state(4.0, 0.0, yaw_rate=0.8)
+    assert np.degrees(np.arctan2(x[1], x[0])) > 12.0 and abs(driver.rear_sideslip_deg(x)) < 1e-9
+    for k in range(50):
+        driver(k * 0.01, x)
+        assert not driver.recovering
+
+
+def test_the_sawtooth_measure_flags_a_zigzag_and_not_a_slalom() -> None:
+    dt = 0.01
+    t = np.arange(0, 4, dt)
+    zigzag = np.clip(np.cumsum(np.sign(np.sin(2 * np.pi * 4 * t))) * 7.2, -30, 30)
+    slalom = 200 * np.sin(2 * np.pi * 1.0 * t)  # the driver's fastest slalom, 1 Hz
+    assert len(steering_reversals(slalom, dt)) == 8  # two a second, at each peak
+    assert sawtooth_frames(zigzag, dt).mean() > 0.9
+    assert not sawtooth_frames(slalom, dt).any()
+
+
+def test_default_drives_keep_steering_reversals_human(sedan_module: Sedan) -> None:
+    """Episode 2 of data=default saw-toothed at 11-13 s (+-30 deg at several Hz) before the
+    recovery logic had hysteresis and looked at the rear axle; episode 7 for 24 % of its frames."""
+    data = DataConfig()
+    for index in (2, 7):
+        drive = drive_episode(sedan_module, data, DRY, index, 1500)
+        steer = np.asarray(drive["inputs"])[:, 0]
+        assert not sawtooth_frames(steer, 0.01).any()
+        reversals = steering_reversals(steer, 0.01)
+        per_second = np.bincount(reversals // 100)
+        assert per_second.max() <= 4, per_second
+
+
+def test_a_rolling_start_is_drawn_per_episode_and_cruised_on(sedan_module: Sedan) -> None:
+    data = DataConfig(start_speed_mps=[10.0, 28.0])
+    speeds = [data.start_speed(i) for i in range(6)]
+    assert speeds == [data.start_speed(i) for i in range(6)]  # from the episode's seed
+    assert all(10.0 <= v <= 28.0 for v in speeds) and len(set(speeds)) == 6
+    assert DataConfig().start_speed(3) == 0.0  # the default schema: from rest
+    drive = drive_episode(sedan_module, data, DRY, 0, 300)
+    vx = np.asarray(drive["states"])[:, 0]
+    assert vx[0] == pytest.approx(speeds[0], abs=1e-6)
+    # Cruising on near the speed it has: no launch, no braking to a stop within 3 s.
+    assert np.all(np.abs(vx - speeds[0]) < 0.25 * speeds[0]) and not drive["spun"]
 
 
 @pytest.fixture(scope="module")

@@ -37,7 +37,7 @@ from typing import Any
 
 from harness import spectrum, step_response, training_report
 from harness.config import as_object
-from harness.data.collect import prepare
+from harness.data.collect import prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
@@ -115,6 +115,7 @@ class Pipeline:
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
+        data_metrics |= reference_speeds(self.references, plant.dt, dataset)
         if self.loaded is None:
             check_training_data(dataset)
         sections: dict[str, Any] = {"data": data_metrics}
