@@ -40,9 +40,9 @@ def main() -> None:
     knowledge = DriverKnowledge.of(plant.params)
     lengths = data.episode_lengths()
     count = data.episodes if args.episodes is None else args.episodes
-    total = affected = reversals = 0
-    print("| episode | frames | reversals / min | saw-tooth frames | fraction |")
-    print("|---|---|---|---|---|")
+    total = affected = reversals = spun = 0
+    print("| episode | frames | reversals / min | saw-tooth frames | fraction | spun |")
+    print("|---|---|---|---|---|---|")
     for index in range(count):
         steps = lengths[index] if args.max_steps is None else min(lengths[index], args.max_steps)
         episode = drive_episode(plant, data, knowledge, index, steps)
@@ -50,13 +50,13 @@ def main() -> None:
         bad = int(sawtooth_frames(steer, plant.dt).sum())
         turns = len(steering_reversals(steer, plant.dt))
         total, affected, reversals = total + len(steer), affected + bad, reversals + turns
-        minutes = len(steer) * plant.dt / 60
-        print(
-            f"| {index} | {len(steer)} | {turns / minutes:.1f} | {bad} | {bad / len(steer):.4f} |"
-        )
+        spun += bool(episode["spun"])
+        per_minute = turns / (len(steer) * plant.dt / 60)
+        row = f"| {index} | {len(steer)} | {per_minute:.1f} | {bad} | {bad / len(steer):.4f} |"
+        print(f"{row} {bool(episode['spun'])} |")
     print(
         f"| all {count} | {total} | {reversals / (total * plant.dt / 60):.1f} | {affected} | "
-        f"{affected / total:.4f} |"
+        f"{affected / total:.4f} | {spun} |"
     )
 
 

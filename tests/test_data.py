@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import json
 import pickle
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from harness.data.collect import reference_speeds
 from harness.data.coverage import sawtooth_frames, steering_reversals
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
+from harness.data.episode import Episode, MinMaxNormalizer
 from harness.data.store import (
     DataConfig,
+    Dataset,
     DatasetError,
     _write_manifest,
     collect,
@@ -23,6 +27,7 @@ from harness.data.store import (
 from harness.interfaces import Plant
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
+from harness.references import Reference
 from harness.rollout import simulate
 
 DRY = DriverKnowledge.of(SedanParams())  # what the driver of the default sedan knows
@@ -326,3 +331,40 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     assert (target / "manifest.json").read_bytes() == (directory / "manifest.json").read_bytes()
     for a, b in zip(finished.episodes(), original.episodes(), strict=True):
         np.testing.assert_array_equal(a.inputs, b.inputs)
+
+
+class ConstantSpeed:
+    """A reference at one speed (a toy of the ISO lane change at 22.2 m/s)."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+
+    def label(self, name: str, episodes: Sequence[Episode]) -> str:
+        return f"{name}_{self.speed:g}"
+
+    def build(self, dt: float, episodes: Sequence[Episode]) -> np.ndarray:
+        return np.tile([self.speed, 0.0, 0.0], (50, 1))
+
+
+def test_references_outside_the_training_speeds_are_named(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    def drive(name: str, top: float) -> Episode:
+        t = np.arange(100) * 0.01
+        states = np.stack([np.linspace(0.0, top, 100), 0 * t, 0 * t], axis=1)
+        return Episode(name, t, states, np.zeros((100, 2)), np.zeros((100, 3)))
+
+    train, test = [drive("a", 20.7), drive("b", 12.0)], [drive("c", 25.0)]
+    dataset = Dataset(Path("."), {}, train, test, test, MinMaxNormalizer.fit(train))
+    references = {"slow": ConstantSpeed(15.0), "lane_change": ConstantSpeed(22.2)}
+    assert all(isinstance(r, Reference) for r in references.values())
+    with caplog.at_level("WARNING"):
+        result = reference_speeds(references, 0.01, dataset)
+    assert result["training_speed_range_mps"] == [0.0, pytest.approx(20.7)]
+    assert result["reference_speed_range_mps"] == {
+        "slow_15": [15.0, 15.0],
+        "lane_change_22.2": [22.2, 22.2],
+    }
+    assert result["outside_training_speed"] == ["lane_change_22.2"]
+    assert "lane_change_22.2 runs at 22.2-22.2 m/s, outside" in caplog.text
+    assert "slow_15" not in caplog.text

@@ -114,7 +114,7 @@ def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float, path: Pa
                 lw=0.8,
                 label=f"{e.name} ({split})" if len(episodes) <= 12 else None,
             )
-    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{len(episodes)} episodes (paths from rest)")
+    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{len(episodes)} episodes (paths)")
     ax.set_aspect("equal", adjustable="datalim")
     if len(episodes) <= 12:
         ax.legend(fontsize=7, loc="best")
