@@ -366,5 +366,5 @@ def test_references_outside_the_training_speeds_are_named(
         "lane_change_22.2": [22.2, 22.2],
     }
     assert result["outside_training_speed"] == ["lane_change_22.2"]
-    assert "lane_change_22.2 runs at 22.2-22.2 m/s, outside" in caplog.text
+    assert "lane_change_22.2 runs at 22.2 to 22.2 m/s, outside" in caplog.text
     assert "slow_15" not in caplog.text

@@ -72,8 +72,8 @@ def reference_speeds(
     for label in outside:
         a, b = ranges[label]
         log.warning(
-            "data: the reference %s runs at %.1f-%.1f m/s, outside the training drives' "
-            "%.1f-%.1f m/s: its tracking judges the model outside its data",
+            "data: the reference %s runs at %.1f to %.1f m/s, outside the training drives' "
+            "%.1f to %.1f m/s: its tracking judges the model outside its data",
             label,
             a,
             b,
