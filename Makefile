@@ -35,6 +35,7 @@ bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxp
 	$(BIN)/pip install --quiet -e '.[dev,bench]'
 	$(BIN)/python -m bench.plant_throughput
 	$(BIN)/python -m bench.collect_throughput
+	$(BIN)/python -m bench.driver_sawtooth
 	$(BIN)/python -m bench.mpc_solve_time
 	$(BIN)/python -m bench.training_speed
 

@@ -25,7 +25,6 @@ steps ahead), and drawn as a path ahead of the car in the 3D view (``{name}/pred
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -37,9 +36,9 @@ from matplotlib.figure import Figure
 
 from harness.artifacts import load_arrays, save_arrays
 from harness.figures import save_figure
-from harness.interfaces import INPUT_NAMES, STATE_NAMES, Controller, Plant, StepInfo
+from harness.interfaces import INPUT_NAMES, STATE_NAMES, Controller, Plant
 from harness.recorder import Recorder
-from harness.rollout import Trajectory
+from harness.rollout import Trajectory, closed_loop
 
 
 @dataclass
@@ -71,28 +70,25 @@ def track(
     reference = np.asarray(reference, dtype=float)
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
         raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
-    steps = len(reference)
-    states, inputs, poses = np.empty((steps, 3)), np.zeros((steps, 2)), np.empty((steps, 3))
-    solve_time = np.full(steps, np.nan)
-    infos: list[StepInfo] = []
-    x = plant.reset(speed_mps=float(reference[0, 0]))
     controller.reset(reference)
-    for k in range(steps - 1):
-        states[k], poses[k] = x, plant.pose
-        start = time.perf_counter()
-        u, info = controller.act(x, k * plant.dt)
-        solve_time[k] = time.perf_counter() - start
-        inputs[k], x = u, plant.step(u)
-        infos.append(info)
-        if not np.all(np.isfinite(x)):
-            raise RuntimeError(f"plant state became non-finite at t = {k * plant.dt:.2f} s")
-    states[-1], poses[-1], inputs[-1] = x, plant.pose, inputs[-2]
-    time_s = np.arange(steps) * plant.dt
-    # The last sample has no step after it, hence no prediction.
-    predicted = [info.predicted_states for info in infos]
-    predicted.append(np.full_like(predicted[0], np.nan))
+    loop = closed_loop(
+        plant,
+        controller.act,
+        len(reference),
+        speed_mps=float(reference[0, 0]),
+        timed=True,
+        keep_infos=True,
+    )
+    infos = loop.infos
+    # The last sample has no step after it, hence no prediction (a NaN row) and no solve time.
     run = TrackingTrajectory(
-        time_s, states, inputs, poses, reference, np.stack(predicted), solve_time[:-1].copy()
+        loop.time_s,
+        loop.states,
+        loop.inputs,
+        loop.poses,
+        reference,
+        loop.predicted(),
+        loop.solve_time_s[:-1].copy(),
     )
     metrics = tracking_metrics(run, plant.dt, sum(info.fallback for info in infos))
     metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))

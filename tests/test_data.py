@@ -4,23 +4,30 @@ from __future__ import annotations
 
 import json
 import pickle
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from harness.data.collect import reference_speeds
+from harness.data.coverage import sawtooth_frames, steering_reversals
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
+from harness.data.episode import Episode, MinMaxNormalizer
 from harness.data.store import (
     DataConfig,
+    Dataset,
     DatasetError,
     _write_manifest,
     collect,
     content_key,
+    drive_episode,
     load,
 )
 from harness.interfaces import Plant
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
+from harness.references import Reference
 from harness.rollout import simulate
 
 DRY = DriverKnowledge.of(SedanParams())  # what the driver of the default sedan knows
@@ -114,6 +121,82 @@ def test_bad_data_values_name_their_key(tmp_path: Path) -> None:
         DriverConfig(steer_rate_deg_per_s=-1.0)
     with pytest.raises(ValueError, match=r"data\.driver\.segment_duration_s"):
         DriverConfig(segment_duration_s=(1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match=r"data\.driver\.recovery_exit_sideslip_deg \(9"):
+        DriverConfig(recovery_exit_sideslip_deg=9.0)
+    with pytest.raises(ValueError, match=r"data\.start_speed_mps must be \[low, high\]"):
+        tiny(tmp_path, start_speed_mps=[20.0, 5.0])
+    with pytest.raises(ValueError, match=r"data\.start_speed_mps .*max_speed_mps \(33"):
+        tiny(tmp_path, start_speed_mps=[0.0, 40.0])
+
+
+def rear_slip_state(speed: float, rear_slip_deg: float, yaw_rate: float = 0.2) -> np.ndarray:
+    """A state whose rear-axle sideslip (half a wheelbase, 1.35 m, behind the CG) is given."""
+    vy = speed * np.tan(np.radians(rear_slip_deg)) + 1.35 * yaw_rate
+    return np.array([speed, vy, yaw_rate])
+
+
+def test_the_driver_recovers_from_a_rear_slide_with_hysteresis() -> None:
+    driver = SyntheticDriver(DriverConfig(), np.random.default_rng(0), 0.01, road_friction=0.9)
+    driver(0.0, rear_slip_state(20.0, 0.0))
+    seen = []
+    for slip in (5.0, 9.0, 7.0, 5.0, 3.5, 2.5, 5.0, 7.9, 8.5):
+        driver(0.01, rear_slip_state(20.0, slip))
+        seen.append(driver.recovering)
+    # Enters above 8 deg, stays in down to 3 deg, stays out until 8 deg again.
+    assert seen == [False, True, True, True, True, False, False, False, True]
+    steer, pedal = driver.steer, driver.pedal
+    driver(0.02, rear_slip_state(20.0, 9.0))
+    # Straightening the wheel at twice the normal rate (7.2 deg a step) and lifting off.
+    assert abs(driver.steer) < max(abs(steer) - 5.0, 3.0)
+    assert driver.pedal <= max(pedal, 0.0)
+
+
+def test_a_gripping_turn_at_walking_pace_is_not_a_slide() -> None:
+    """At 4 m/s and r = 0.8 rad/s every tyre grips with 12 deg of sideslip at the CG (the
+    geometry's, atan(b r / v)): the rear axle's is zero, and the driver keeps steering."""
+    driver = SyntheticDriver(DriverConfig(), np.random.default_rng(0), 0.01, road_friction=0.9)
+    x = rear_slip_state(4.0, 0.0, yaw_rate=0.8)
+    assert np.degrees(np.arctan2(x[1], x[0])) > 12.0 and abs(driver.rear_sideslip_deg(x)) < 1e-9
+    for k in range(50):
+        driver(k * 0.01, x)
+        assert not driver.recovering
+
+
+def test_the_sawtooth_measure_flags_a_zigzag_and_not_a_slalom() -> None:
+    dt = 0.01
+    t = np.arange(0, 4, dt)
+    zigzag = np.clip(np.cumsum(np.sign(np.sin(2 * np.pi * 4 * t))) * 7.2, -30, 30)
+    slalom = 200 * np.sin(2 * np.pi * 1.0 * t)  # the driver's fastest slalom, 1 Hz
+    assert len(steering_reversals(slalom, dt)) == 8  # two a second, at each peak
+    assert sawtooth_frames(zigzag, dt).mean() > 0.9
+    assert not sawtooth_frames(slalom, dt).any()
+
+
+def test_default_drives_keep_steering_reversals_human(sedan_module: Sedan) -> None:
+    """Episode 2 of data=default saw-toothed at 11-13 s (+-30 deg at several Hz) before the
+    recovery logic had hysteresis and looked at the rear axle; episode 7 for 24 % of its frames."""
+    data = DataConfig(start_speed_mps=[0.0, 0.0])  # the old default's drives, from rest
+    for index in (2, 7):
+        drive = drive_episode(sedan_module, data, DRY, index, 1500)
+        steer = np.asarray(drive["inputs"])[:, 0]
+        assert not sawtooth_frames(steer, 0.01).any()
+        reversals = steering_reversals(steer, 0.01)
+        per_second = np.bincount(reversals // 100)
+        assert per_second.max() <= 4, per_second
+
+
+def test_a_rolling_start_is_drawn_per_episode_and_cruised_on(sedan_module: Sedan) -> None:
+    data = DataConfig(start_speed_mps=[10.0, 28.0])
+    speeds = [data.start_speed(i) for i in range(6)]
+    assert speeds == [data.start_speed(i) for i in range(6)]  # from the episode's seed
+    assert all(10.0 <= v <= 28.0 for v in speeds) and len(set(speeds)) == 6
+    assert DataConfig(start_speed_mps=[0.0, 0.0]).start_speed(3) == 0.0  # data=paper: from rest
+    assert 0 <= DataConfig().start_speed(3) <= 28.0  # data=default rolls
+    drive = drive_episode(sedan_module, data, DRY, 0, 300)
+    vx = np.asarray(drive["states"])[:, 0]
+    assert vx[0] == pytest.approx(speeds[0], abs=1e-6)
+    # Cruising on near the speed it has: no launch, no braking to a stop within 3 s.
+    assert np.all(np.abs(vx - speeds[0]) < 0.25 * speeds[0]) and not drive["spun"]
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +231,8 @@ def test_normalizer_is_fitted_on_train_only_and_round_trips(stored) -> None:
     assert not np.allclose(dataset.normalizer.state_max, everything.max(0))  # test differs
     x = dataset.test[0].states
     u = dataset.test[0].inputs
-    np.testing.assert_allclose(dataset.normalizer.states_inverse(dataset.normalizer.states(x)), x)
+    round_trip = dataset.normalizer.states_inverse(dataset.normalizer.states(x))
+    np.testing.assert_allclose(round_trip, x, atol=1e-12)  # a rolling start's vy is ~1e-37
     np.testing.assert_allclose(
         dataset.normalizer.inputs_inverse(dataset.normalizer.inputs(u)), u, atol=1e-12
     )
@@ -249,3 +333,40 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     assert (target / "manifest.json").read_bytes() == (directory / "manifest.json").read_bytes()
     for a, b in zip(finished.episodes(), original.episodes(), strict=True):
         np.testing.assert_array_equal(a.inputs, b.inputs)
+
+
+class ConstantSpeed:
+    """A reference at one speed (a toy of the ISO lane change at 22.2 m/s)."""
+
+    def __init__(self, speed: float) -> None:
+        self.speed = speed
+
+    def label(self, name: str, episodes: Sequence[Episode]) -> str:
+        return f"{name}_{self.speed:g}"
+
+    def build(self, dt: float, episodes: Sequence[Episode]) -> np.ndarray:
+        return np.tile([self.speed, 0.0, 0.0], (50, 1))
+
+
+def test_references_outside_the_training_speeds_are_named(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    def drive(name: str, top: float) -> Episode:
+        t = np.arange(100) * 0.01
+        states = np.stack([np.linspace(0.0, top, 100), 0 * t, 0 * t], axis=1)
+        return Episode(name, t, states, np.zeros((100, 2)), np.zeros((100, 3)))
+
+    train, test = [drive("a", 20.7), drive("b", 12.0)], [drive("c", 25.0)]
+    dataset = Dataset(Path("."), {}, train, test, test, MinMaxNormalizer.fit(train))
+    references = {"slow": ConstantSpeed(15.0), "lane_change": ConstantSpeed(22.2)}
+    assert all(isinstance(r, Reference) for r in references.values())
+    with caplog.at_level("WARNING"):
+        result = reference_speeds(references, 0.01, dataset)
+    assert result["training_speed_range_mps"] == [0.0, pytest.approx(20.7)]
+    assert result["reference_speed_range_mps"] == {
+        "slow_15": [15.0, 15.0],
+        "lane_change_22.2": [22.2, 22.2],
+    }
+    assert result["outside_training_speed"] == ["lane_change_22.2"]
+    assert "lane_change_22.2 runs at 22.2 to 22.2 m/s, outside" in caplog.text
+    assert "slow_15" not in caplog.text

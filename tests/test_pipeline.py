@@ -124,6 +124,10 @@ def test_a_reference_added_by_config_alone_is_tracked(edmd_run) -> None:
     tracking = metrics["tracking"]
     assert list(tracking["references"]) == [f"test_episode/{episode}", "steady"]
     assert tracking["reference"] == f"test_episode/{episode}"  # still the first reference
+    data = metrics["data"]
+    assert data["reference_speed_range_mps"]["steady"] == [15.0, 15.0]
+    low, high = data["training_speed_range_mps"]
+    assert ("steady" in data["outside_training_speed"]) == (not low <= 15.0 <= high)
     arrays = load_arrays(tmp / "steady" / "tracking_de_mpc_steady.npz")
     reference = SteadyCruise(15.0, 2.0).build(0.01, [])
     np.testing.assert_array_equal(arrays["reference"], reference)

@@ -3,13 +3,21 @@ record and summarise its coverage (the tasks themselves are in ``harness/tasks/`
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from harness.data import coverage
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, collect_counted, load
 from harness.plant import Sedan
 from harness.recorder import Recorder
+from harness.references import Reference
+
+log = logging.getLogger(__name__)
 
 
 def prepare(
@@ -42,3 +50,38 @@ def prepare(
         "normalizer": dataset.normalizer.to_dict(),
     }
     return dataset, metrics
+
+
+def reference_speeds(
+    references: Mapping[str, Reference], dt: float, dataset: Dataset
+) -> dict[str, Any]:
+    """The speed range of every reference the pipeline tracks against the training drives'.
+
+    A model is judged outside its data where a reference leaves the training speed range (the
+    lane change at 22.2 m/s on drives that never passed 20.7 m/s did): each such reference is
+    named in a warning and in ``data.outside_training_speed``.
+    """
+    vx = np.concatenate([e.states[:, 0] for e in dataset.train])
+    low, high = float(vx.min()), float(vx.max())
+    ranges: dict[str, list[float]] = {}
+    for name, reference in references.items():
+        label = reference.label(name, dataset.test)
+        speeds = reference.build(dt, dataset.test)[:, 0]
+        ranges[label] = [float(speeds.min()), float(speeds.max())]
+    outside = sorted(label for label, (a, b) in ranges.items() if a < low or b > high)
+    for label in outside:
+        a, b = ranges[label]
+        log.warning(
+            "data: the reference %s runs at %.1f to %.1f m/s, outside the training drives' "
+            "%.1f to %.1f m/s: its tracking judges the model outside its data",
+            label,
+            a,
+            b,
+            low,
+            high,
+        )
+    return {
+        "training_speed_range_mps": [low, high],
+        "reference_speed_range_mps": ranges,
+        "outside_training_speed": outside,
+    }

@@ -12,11 +12,51 @@ from harness.data.episode import Episode, pedal_scale
 from harness.figures import save_figure
 
 G = 9.81
+# A steering reversal: the steering rate changes sign, counting only rates beyond this dead band
+# (the driver's hand tremor moves the wheel at about 20 deg/s rms from step to step).
+REVERSAL_DEAD_BAND_DEG_PER_S = 60.0
+# A saw-tooth: more reversals than this within one second (a person's fastest slalom, 1 Hz,
+# reverses twice a second).
+SAWTOOTH_WINDOW_S = 1.0
+SAWTOOTH_REVERSALS = 4
 
 
 def lateral_accel(episode: Episode) -> np.ndarray:
     vx, vy, yaw_rate = episode.states.T
     return np.gradient(vy, episode.time_s) + vx * yaw_rate
+
+
+def steering_reversals(
+    steer_deg: np.ndarray, dt: float, dead_band: float = REVERSAL_DEAD_BAND_DEG_PER_S
+) -> np.ndarray:
+    """Frame indices where the steering rate reverses: a sign change between successive rates
+    beyond ``dead_band`` (deg/s), rates inside the band skipped."""
+    rate = np.diff(np.asarray(steer_deg, dtype=float)) / dt
+    moving = np.flatnonzero(np.abs(rate) > dead_band)
+    signs = np.sign(rate[moving])
+    return moving[1:][signs[1:] != signs[:-1]]
+
+
+def sawtooth_frames(
+    steer_deg: np.ndarray,
+    dt: float,
+    window_s: float = SAWTOOTH_WINDOW_S,
+    reversals: int = SAWTOOTH_REVERSALS,
+) -> np.ndarray:
+    """(T,) bool: frames inside a window of ``window_s`` that holds more than ``reversals``
+    steering reversals (no person steers like that; a limit cycle of a driver's logic does)."""
+    frames = len(steer_deg)
+    width = max(round(window_s / dt), 1)
+    counts = np.zeros(frames + 1)
+    np.add.at(counts, steering_reversals(steer_deg, dt) + 1, 1)
+    cumulative = np.cumsum(counts)
+    starts = np.arange(frames)
+    in_window = cumulative[np.minimum(starts + width, frames)] - cumulative[starts]
+    busy = np.flatnonzero(in_window > reversals)
+    marks = np.zeros(frames + 1)
+    np.add.at(marks, busy, 1)
+    np.add.at(marks, np.minimum(busy + width, frames), -1)
+    return np.cumsum(marks)[:frames] > 0
 
 
 def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, float | int]:
@@ -26,11 +66,16 @@ def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, floa
     a_y = np.abs(np.concatenate([lateral_accel(e) for e in episodes]))
     vx = states[:, 0]
     limit = road_friction * G
+    dt = float(episodes[0].time_s[1] - episodes[0].time_s[0])
+    sawtooth = sum(int(sawtooth_frames(e.inputs[:, 0], dt).sum()) for e in episodes)
+    reversals = sum(len(steering_reversals(e.inputs[:, 0], dt)) for e in episodes)
     return {
         "episodes": len(episodes),
         "frames": len(states),
         "hours": float(len(states) * 0.01 / 3600),
         "vx_max_mps": float(vx.max()),
+        "vx_min_mps": float(vx.min()),
+        "start_speed_max_mps": float(max(e.states[0, 0] for e in episodes)),
         "vx_p50_mps": float(np.median(vx)),
         "fraction_below_5mps": float(np.mean(vx < 5.0)),
         "fraction_above_25mps": float(np.mean(vx > 25.0)),
@@ -44,6 +89,8 @@ def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, floa
         "fraction_throttle": float(np.mean(inputs[:, 1] > 0)),
         "fraction_brake": float(np.mean(inputs[:, 1] < 0)),
         "fraction_hard_brake_above_6mpa": float(np.mean(inputs[:, 1] < -6.0)),
+        "steering_reversals_per_minute": float(reversals / (len(states) * dt / 60)),
+        "fraction_steering_sawtooth": float(sawtooth / len(states)),
     }
 
 
@@ -67,7 +114,7 @@ def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float, path: Pa
                 lw=0.8,
                 label=f"{e.name} ({split})" if len(episodes) <= 12 else None,
             )
-    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{len(episodes)} episodes (paths from rest)")
+    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{len(episodes)} episodes (paths)")
     ax.set_aspect("equal", adjustable="datalim")
     if len(episodes) <= 12:
         ax.legend(fontsize=7, loc="best")

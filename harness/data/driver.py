@@ -5,9 +5,19 @@ launches from rest, cruising at chosen speeds (including parking-lot speeds), co
 and hard braking to a stop, and on the steering side straight driving, held angles, ramps,
 slaloms, lane changes and sustained corners aimed at a lateral acceleration up to the friction
 limit. Inputs are rate limited like a person's hands and feet, and there is one signed pedal, so
-throttle and brake can never be pressed together. A driver that notices the car sliding
-(sideslip beyond ``recovery_sideslip_deg``) straightens the wheel and lifts off; if the car spins
-anyway (sideslip beyond ``spin_sideslip_deg`` or rolling backwards), the episode ends there.
+throttle and brake can never be pressed together. A driver that notices the car sliding (the rear
+axle's sideslip beyond ``recovery_sideslip_deg``) straightens the wheel and lifts off until the
+rear has gripped again (below ``recovery_exit_sideslip_deg``); if the car spins anyway (sideslip
+beyond ``spin_sideslip_deg`` or rolling backwards), the episode ends there. A drive may start
+rolling (``speed_mps``): it then cruises on near that speed first instead of launching.
+
+Why the rear axle and the hysteresis: the sideslip at the centre of gravity is not a slide. In a
+tight turn at parking-lot speed it is the geometry's, atan(b tan δ / L), 8° at 260° of steering
+and walking pace with every tyre gripping; thresholding it, with one threshold to enter and to
+leave, made the driver straighten the wheel, see the "slide" end, steer back in and straighten
+again: a saw-tooth of about ±30° at several Hz with a flickering pedal (6 % of the frames of the
+old ``data=default``). What a person feels is the tail stepping out, the sideslip at the rear
+axle (zero in a gripping low-speed turn), and a person who caught a slide waits until it is over.
 """
 
 from __future__ import annotations
@@ -66,8 +76,9 @@ class DriverConfig:
     max_steer_amplitude_deg: float = 300.0
     steer_noise_deg: float = 1.5  # hand tremor: a slow random wander of the wheel
     initial_steer_deg: float = 90.0  # the paper's random initial steering-wheel angle, +-
-    recovery_sideslip_deg: float = 8.0
-    spin_sideslip_deg: float = 25.0
+    recovery_sideslip_deg: float = 8.0  # the rear axle's sideslip that starts a recovery
+    recovery_exit_sideslip_deg: float = 3.0  # ... and the one below which it ends (hysteresis)
+    spin_sideslip_deg: float = 25.0  # at the centre of gravity: the drive ends there
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -88,6 +99,11 @@ class DriverConfig:
                 raise ValueError(f"data.driver.{name} must be [low, high] with 0 < low <= high")
         if not self.max_speed_mps > 3:
             raise ValueError(f"data.driver.max_speed_mps must be > 3 (got {self.max_speed_mps})")
+        if not self.recovery_exit_sideslip_deg < self.recovery_sideslip_deg:
+            raise ValueError(
+                f"data.driver.recovery_exit_sideslip_deg ({self.recovery_exit_sideslip_deg}) must "
+                f"be below data.driver.recovery_sideslip_deg ({self.recovery_sideslip_deg})"
+            )
 
 
 class SyntheticDriver:
@@ -103,26 +119,44 @@ class SyntheticDriver:
         wheelbase_m: float = 2.7,
         steering_ratio: float = 16.0,
         understeer_rad_per_mps2: float = 0.0045,
+        speed_mps: float = 0.0,
     ) -> None:
+        """``speed_mps``: the speed the drive starts at (0: from rest, with a launch)."""
         self.config, self.rng, self.dt = config, rng, dt
         self.mu, self.wheelbase, self.ratio = road_friction, wheelbase_m, steering_ratio
+        # Where the driver feels a slide: the rear axle, taken half a wheelbase behind the CG.
+        self.rear_axle_m = wheelbase_m / 2
         self.understeer = understeer_rad_per_mps2
         self._lateral_p = np.asarray(config.lateral_weights) / sum(config.lateral_weights)
         self._longitudinal_p = np.asarray(config.longitudinal_weights) / sum(
             config.longitudinal_weights
         )
-        self.steer = float(rng.uniform(-1, 1) * config.initial_steer_deg)
+        initial = config.initial_steer_deg
+        if speed_mps >= 8.0:  # rolling fast: no more than a held angle the driver would dare
+            initial = min(initial, self._dare_hold(speed_mps))
+        self.steer = float(rng.uniform(-1, 1) * initial)
         self.pedal = 0.0
         self.noise = 0.0
         self.spun = False
+        self.recovering = False
         self._longitudinal_end = self._lateral_end = -1.0
-        self._launch = True  # every episode starts from rest with a launch
+        self._launch = True  # the first feet segment: a launch from rest, or cruising on
+
+    def _dare_hold(self, speed: float) -> float:
+        """The largest steering-wheel angle the driver holds at ``speed`` (large when slow)."""
+        dare = 2500.0 * self.config.aggressiveness / max(speed, 1.0) ** 1.2
+        return (
+            self.config.max_steer_amplitude_deg
+            if speed < 8
+            else min(self.config.max_steer_amplitude_deg, dare)
+        )
 
     # --- segment choice -------------------------------------------------------------------
     def _new_longitudinal(self, t: float, x: np.ndarray) -> None:
         """Feet: a launch first, then cruise / coast / brake segments on their own clock."""
         cfg, rng = self.config, self.rng
         speed = max(x[0], 0.0)
+        launch = self._launch
         if self._launch:
             longitudinal, self._launch = "cruise", False
         else:
@@ -136,6 +170,8 @@ class SyntheticDriver:
             low = rng.random() < cfg.low_speed_probability
             high = cfg.max_speed_mps
             self.target_speed = rng.uniform(2.0, 8.0) if low else rng.uniform(8.0, high)
+            if launch and speed > 3.0:  # a rolling start: cruise on near the speed it has
+                self.target_speed = min(speed * rng.uniform(0.85, 1.15), high)
             self.hold_s = rng.uniform(*cfg.segment_duration_s) * 2.0
             # A person rarely holds the pedal for more than ~20 s before doing something else.
             self._longitudinal_end = t + rng.uniform(8.0, 25.0)
@@ -163,9 +199,7 @@ class SyntheticDriver:
             self.steer_target = rng.uniform(-10.0, 10.0)
         elif self.lateral == "hold":
             # Large angles at low speed, small ones at speed: what a person would dare.
-            dare = 2500.0 * cfg.aggressiveness / max(speed, 1.0) ** 1.2
-            limit = amplitude if speed < 8 else min(amplitude, dare)
-            self.steer_target = sign * rng.uniform(0.0, limit)
+            self.steer_target = sign * rng.uniform(0.0, self._dare_hold(speed))
         elif self.lateral == "ramp":
             self.ramp_rate = sign * rng.uniform(5.0, 60.0)
         elif self.lateral in ("slalom", "lane_change"):
@@ -215,6 +249,17 @@ class SyntheticDriver:
             return min(0.08 * error + 0.05, THROTTLE_MAX) if error > 0 else 0.02
         return max(0.6 * error, -2.0)  # gentle braking to come down to the cruise speed
 
+    def rear_sideslip_deg(self, x: np.ndarray) -> float:
+        """The sideslip at the rear axle, (vy - b r) / vx: what a slide feels like from the seat
+        (zero in a gripping turn at any steering angle, unlike the sideslip at the CG)."""
+        return math.degrees(math.atan2(x[1] - self.rear_axle_m * x[2], max(abs(x[0]), 1.0)))
+
+    def spinning(self, x: np.ndarray) -> bool:
+        """The car has spun (sideslip beyond ``spin_sideslip_deg``) or rolls backwards: the
+        drive ends here (``drive_episode`` keeps it up to this frame)."""
+        sideslip = math.degrees(math.atan2(x[1], max(abs(x[0]), 1.0)))
+        return abs(sideslip) > self.config.spin_sideslip_deg or x[0] < -0.5
+
     def __call__(self, t: float, x: np.ndarray) -> tuple[float, float]:
         cfg = self.config
         if t >= self._longitudinal_end:
@@ -222,10 +267,13 @@ class SyntheticDriver:
         if t >= self._lateral_end:
             self._new_lateral(t, x)
         speed = x[0]
-        sideslip = math.degrees(math.atan2(x[1], max(abs(speed), 1.0)))
-        if abs(sideslip) > cfg.spin_sideslip_deg or speed < -0.5:
-            self.spun = True
-        recovering = abs(sideslip) > cfg.recovery_sideslip_deg and speed > 3.0
+        self.spun = self.spun or self.spinning(x)
+        rear_slip = abs(self.rear_sideslip_deg(x))
+        if speed <= 3.0 or rear_slip < cfg.recovery_exit_sideslip_deg:
+            self.recovering = False
+        elif rear_slip > cfg.recovery_sideslip_deg:
+            self.recovering = True
+        recovering = self.recovering
         steer_target = 0.0 if recovering else self._steer_target(t, x)
         pedal_target = 0.0 if recovering else self._pedal_target(t, x)
 

@@ -67,6 +67,7 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from harness.files import write_atomic, write_text_atomic
 from harness.interfaces import Plant
 from harness.plant.native import cache_dir
+from harness.rollout import NO_INFO, closed_loop
 
 FORMAT_VERSION = 1
 SPLITS = ("train", "validation", "test")
@@ -102,6 +103,10 @@ class DataConfig:
     max_steps: int = 4000
     split: dict[str, int] = field(default_factory=lambda: {"train": 8, "validation": 2, "test": 2})
     seed: int = 0
+    # Each drive starts rolling straight at a speed drawn uniformly from [low, high] m/s (its
+    # own seed per episode), up to a little above the lane change's 22.2 m/s that the main job
+    # tracks; [0, 0]: every drive starts from rest, as the paper's (data=paper).
+    start_speed_mps: tuple[float, float] = (0.0, 28.0)
     driver: DriverConfig = field(default_factory=DriverConfig)
     root: str | None = None  # None: $KOOPMAN_HARNESS_CACHE/datasets (~/.cache/koopman-harness)
     workers: int = 2  # processes
@@ -137,6 +142,13 @@ class DataConfig:
                 f"data.split counts sum to {sum(self.split.values())}, "
                 f"not data.episodes ({self.episodes})"
             )
+        speeds = tuple(float(v) for v in self.start_speed_mps)  # the schema hands a list
+        self.start_speed_mps = speeds  # type: ignore[assignment]
+        if len(speeds) != 2 or not 0 <= speeds[0] <= speeds[1] <= self.driver.max_speed_mps:
+            raise ValueError(
+                f"data.start_speed_mps must be [low, high] with 0 <= low <= high <= "
+                f"data.driver.max_speed_mps ({self.driver.max_speed_mps}), got {list(speeds)}"
+            )
         if self.workers < 1 or self.record_every < 1:
             raise ValueError("data.workers and data.record_every must be >= 1")
         total = self.episodes * self.max_steps
@@ -155,6 +167,15 @@ class DataConfig:
             values.pop(transient)
         values["split"] = dict(self.split)
         return values
+
+    def start_speed(self, index: int) -> float:
+        """The speed episode ``index`` starts at (m/s), from a seed of its own: the other draws
+        of the drive do not move when the range changes."""
+        low, high = self.start_speed_mps
+        if high == 0:
+            return 0.0
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, 4, index]))
+        return float(rng.uniform(low, high))
 
     def episode_lengths(self) -> list[int]:
         """Log-uniform lengths in [min_steps, max_steps]: many shorter drives, some long ones."""
@@ -317,32 +338,33 @@ def _episode_seed(data: DataConfig, index: int) -> np.random.Generator:
 def drive_episode(
     plant: Plant, data: DataConfig, knowledge: DriverKnowledge, index: int, steps: int
 ) -> dict[str, np.ndarray | bool]:
-    """One episode from rest, driven by the synthetic driver; stops early if the car spins."""
+    """One episode from rest or rolling (``data.start_speed``), driven by the synthetic driver;
+    stops early if the car spins (the drive is kept up to the spin, not the spin itself)."""
+    speed = data.start_speed(index)
     driver = SyntheticDriver(
         data.driver,
         _episode_seed(data, index),
         plant.dt,
         road_friction=knowledge.road_friction,
         steering_ratio=knowledge.steering_ratio,
+        speed_mps=speed,
     )
-    states = np.empty((steps, 3))
-    inputs = np.empty((steps, 2))
-    poses = np.empty((steps, 3))
-    x = plant.reset(seed=index)
-    n = steps
-    for k in range(steps):
-        states[k], poses[k] = x, plant.pose
-        inputs[k] = driver(k * plant.dt, x)
-        if driver.spun:  # keep the drive up to the spin, not the spin itself
-            n = max(k, 2)
-            break
-        x = plant.step(inputs[k])
+    run = closed_loop(
+        plant,
+        lambda x, t: (driver(t, x), NO_INFO),
+        steps,
+        seed=index,
+        speed_mps=speed,
+        stop=lambda t, x: driver.spinning(x),
+        keep_stop_frame=False,
+        act_on_last=True,  # every recorded frame holds the input the driver applied there
+    )
     return {
-        "time_s": np.arange(n) * plant.dt,
-        "states": states[:n],
-        "inputs": inputs[:n],
-        "poses": poses[:n],
-        "spun": driver.spun,
+        "time_s": run.time_s,
+        "states": run.states,
+        "inputs": run.inputs,
+        "poses": run.poses,
+        "spun": run.stopped,
     }
 
 

@@ -40,7 +40,7 @@ import numpy as np
 from harness import spectrum, step_response, training_report
 from harness.artifacts import save_arrays
 from harness.config import as_object
-from harness.data.collect import prepare
+from harness.data.collect import prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
@@ -121,6 +121,7 @@ class Pipeline:
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
+        data_metrics |= reference_speeds(self.references, plant.dt, dataset)
         if self.loaded is None:
             check_training_data(dataset)
         sections: dict[str, Any] = {"data": data_metrics}
