@@ -41,7 +41,7 @@ from harness.data.collect import prepare
 from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
-from harness.interfaces import BilinearModel, LiftedModel
+from harness.interfaces import LiftedModel, LinearizableModel
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
@@ -315,12 +315,10 @@ def check_training_data(dataset: Dataset) -> None:
 
 def _not_lifted_linear(learner: Learner) -> str | None:
     """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
-    :class:`~harness.interfaces.LiftedModel`'s ``A_`` and ``B_``, and a bilinear model has both
-    but would lose its ``H_`` there."""
-    if isinstance(learner, BilinearModel):
-        return "is bilinear (z+ = A z + B v + sum_j vbar_j H_j z); DE-MPC would ignore its H_"
-    if not isinstance(learner, LiftedModel):
-        return "is not a lifted-linear model"
+    :class:`~harness.interfaces.LiftedModel` (a bilinear one is linearised along its plan) or
+    a :class:`~harness.interfaces.LinearizableModel`."""
+    if not isinstance(learner, LiftedModel | LinearizableModel):
+        return "is not a lifted-linear model (nor bilinear, nor linearizable)"
     return None
 
 
