@@ -1,0 +1,260 @@
+"""The physics baseline: a linear single-track (bicycle) model identified from the driving data.
+
+What a vehicle engineer writes before any learning. Lateral: the linear single-track model with
+axle cornering stiffnesses, in the measured speed vx (w = max(vx, min_speed_mps))::
+
+    α_f = δ − (vy + a r) / w,   α_r = −(vy − b r) / w,   δ = steer_wheel / i_s
+    vy' = (C_f α_f + C_r α_r) / m − vx r
+    r'  = (a C_f α_f − b C_r α_r) / I_z
+
+Longitudinal, first order in vx with the pedal split into throttle p⁺ and brake p⁻ (signed
+pedal scale, as the normalizer's)::
+
+    vx' = vy r + c_0 + c_2 vx² + g_1 p⁺ + g_2 p⁺ / w + g_3 p⁻
+
+(rolling resistance, aerodynamic drag, a throttle force between constant torque g_1 and
+constant power g_2 / v, brake). One Euler step of dt (the data's sampling period) is the model.
+
+Measured, as a person would with a tape and a set of axle scales: the CG's distances to the
+front and rear axles, a and b (``cg_to_front_m``, ``cg_to_rear_m``: wheelbase and axle loads),
+and, for reporting only, the mass. Identified by least squares on the training episodes
+(samples at vx >= ``min_speed_mps``; nothing is read from the plant's configuration): the
+lateral equation is linear in (C_f / m, C_r / m, C_f / (m i_s)), which gives the cornering
+stiffnesses per unit mass and the steering ratio; then the yaw equation is linear in m / I_z
+given the axle forces just found; then the longitudinal equation in (c_0, c_2, g_1, g_2, g_3).
+The mass cancels: it only converts the fitted per-mass values into N/rad and kg·m² in
+:attr:`SingleTrack.parameters`.
+
+Besides a :class:`~learners.base.Learner` (``fit``/``predict``, so it has rows in the
+prediction and step-response tables), the model is a
+:class:`~harness.interfaces.LinearizableModel` in the normalized state (z = x_norm, C = I):
+the time-varying DE-MPC linearises it along its plan (``controller=bicycle_mpc``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar, Self
+
+import numpy as np
+import torch
+
+from harness.data.episode import Episode, MinMaxNormalizer, pedal_scale
+from learners.base import Learner, check_episodes, check_positive, check_rollout_args
+
+__all__ = ["NAMES", "SingleTrack"]
+
+LATERAL = ("front_per_mass", "rear_per_mass", "steer_per_mass")  # C_f/m, C_r/m, C_f/(m i_s)
+YAW = ("mass_per_inertia",)  # m / I_z
+LONGITUDINAL = ("rolling", "drag", "throttle", "throttle_power", "brake")  # c_0 c_2 g_1 g_2 g_3
+NAMES = LATERAL + YAW + LONGITUDINAL
+
+
+class SingleTrack(Learner):
+    """The linear single-track model plus a first-order longitudinal channel (module docstring).
+
+    Args:
+        cg_to_front_m, cg_to_rear_m: a and b, measured (tape and axle scales).
+        mass_kg: measured; used only to report C_f, C_r (N/rad) and I_z (kg m²).
+        min_speed_mps: below it the lateral terms use this speed (1/vx stays bounded), and
+            samples slower than it do not enter the lateral fit.
+
+    Fitted attributes: ``coefficients_`` (len(NAMES),), ``dt_`` (s), ``normalizer_``;
+    ``C_`` = I and ``lift`` = the normalization (a lifted state of the state itself).
+    """
+
+    name: ClassVar[str] = "single_track"
+
+    def __init__(
+        self,
+        cg_to_front_m: float = 1.15,
+        cg_to_rear_m: float = 1.55,
+        mass_kg: float = 1500.0,
+        min_speed_mps: float = 3.0,
+    ) -> None:
+        self.a = check_positive("cg_to_front_m", cg_to_front_m)
+        self.b = check_positive("cg_to_rear_m", cg_to_rear_m)
+        self.mass_kg = check_positive("mass_kg", mass_kg)
+        self.min_speed = check_positive("min_speed_mps", min_speed_mps)
+        self._hyperparameters: dict[str, Any] = {
+            "cg_to_front_m": self.a,
+            "cg_to_rear_m": self.b,
+            "mass_kg": self.mass_kg,
+            "min_speed_mps": self.min_speed,
+        }
+        self.C_ = np.eye(3)
+
+    # -- identification ---------------------------------------------------------------------
+
+    def fit(
+        self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
+    ) -> Self:
+        """Three least-squares problems on the Euler one-step derivatives of ``train``."""
+        check_episodes(train, "train", normalizer)
+        if validation:
+            check_episodes(validation, "validation", normalizer)
+        steps = np.concatenate([np.diff(e.time_s) for e in train])
+        dt = float(np.median(steps))
+        x = np.concatenate([e.states[:-1] for e in train])
+        u = np.concatenate([_features(e.inputs[:-1]) for e in train])
+        rate = np.concatenate([np.diff(e.states, axis=0) for e in train]) / dt
+        vx, vy, r = x.T
+        moving = vx >= self.min_speed
+        if moving.sum() < 10 * len(NAMES):
+            raise ValueError(
+                f"single_track: only {int(moving.sum())} training samples at vx >= "
+                f"{self.min_speed} m/s (learner.min_speed_mps); too few to identify {len(NAMES)} "
+                "parameters"
+            )
+        alpha_f, alpha_r, delta = self._slips(x, u)
+        lateral = np.column_stack([alpha_f, alpha_r, delta])[moving]
+        lateral_target = (rate[:, 1] + vx * r)[moving]
+        front, rear, steer = _lstsq(lateral, lateral_target)
+        force_f = front * alpha_f + steer * delta  # F_yf / m
+        force_r = rear * alpha_r
+        moment = (self.a * force_f - self.b * force_r)[moving]
+        (mass_per_inertia,) = _lstsq(moment[:, None], rate[moving, 2])
+        rolling_regime = vx > 0.5  # at standstill the brakes hold the car: no dynamics to fit
+        longitudinal = self._longitudinal_regressors(x, u)[rolling_regime]
+        target = (rate[:, 0] - vy * r)[rolling_regime]
+        longitudinal_fit = _lstsq(longitudinal, target)
+        self.coefficients_ = np.array(
+            [front, rear, steer, mass_per_inertia, *longitudinal_fit], dtype=np.float64
+        )
+        self.dt_ = dt
+        self.normalizer_ = normalizer
+        return self
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """The identified physics, in SI units: C_f, C_r (N/rad per axle), I_z (kg m²), the
+        steering ratio, and the longitudinal coefficients (per unit mass)."""
+        values = dict(zip(NAMES, self.coefficients_.tolist(), strict=True))
+        front, rear, steer = (values[k] for k in LATERAL)
+        return {
+            "cornering_stiffness_front_n_per_rad": front * self.mass_kg,
+            "cornering_stiffness_rear_n_per_rad": rear * self.mass_kg,
+            "yaw_inertia_kg_m2": self.mass_kg / values["mass_per_inertia"],
+            "steering_ratio": front / steer * np.pi / 180.0 if steer else float("inf"),
+            **{k: values[k] for k in LONGITUDINAL},
+        }
+
+    # -- the model --------------------------------------------------------------------------
+
+    def _slips(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(α_f without steering, α_r, steering-wheel angle in rad) at states x, inputs u."""
+        vx, vy, r = x[..., 0], x[..., 1], x[..., 2]
+        w = np.maximum(vx, self.min_speed)
+        return -(vy + self.a * r) / w, -(vy - self.b * r) / w, np.deg2rad(u[..., 0])
+
+    def _longitudinal_regressors(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        vx = x[..., 0]
+        w = np.maximum(vx, self.min_speed)
+        throttle, brake = np.maximum(u[..., 1], 0.0), np.minimum(u[..., 1], 0.0)
+        return np.stack([np.ones_like(vx), vx * vx, throttle, throttle / w, brake], axis=-1)
+
+    def derivative(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """ẋ (..., 3) at physical states x (..., 3) and input features u (..., 2) (steering
+        wheel in degrees, signed pedal scale)."""
+        front, rear, steer, mass_per_inertia = self.coefficients_[:4]
+        vx, vy, r = x[..., 0], x[..., 1], x[..., 2]
+        alpha_f, alpha_r, delta = self._slips(x, u)
+        force_f = front * alpha_f + steer * delta
+        force_r = rear * alpha_r
+        dvx = vy * r + self._longitudinal_regressors(x, u) @ self.coefficients_[4:]
+        dvy = force_f + force_r - vx * r
+        dr = mass_per_inertia * (self.a * force_f - self.b * force_r)
+        return np.stack([dvx, dvy, dr], axis=-1)
+
+    def _jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(∂ẋ/∂x (K, 3, 3), ∂ẋ/∂u (K, 3, 2)) at K points, physical units (u: features)."""
+        front, rear, steer, mass_per_inertia = self.coefficients_[:4]
+        _, drag, throttle, power, brake = self.coefficients_[4:]
+        vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
+        fast = (vx > self.min_speed).astype(float)  # ∂w/∂vx
+        w = np.maximum(vx, self.min_speed)
+        zero = np.zeros_like(vx)
+        # ∂α/∂(vx, vy, r)
+        d_alpha_f = np.stack([(vy + self.a * r) / w**2 * fast, -1 / w, -self.a / w], axis=-1)
+        d_alpha_r = np.stack([(vy - self.b * r) / w**2 * fast, -1 / w, self.b / w], axis=-1)
+        d_force_f, d_force_r = front * d_alpha_f, rear * d_alpha_r
+        pedal = u[:, 1]
+        pedal_on = np.maximum(pedal, 0.0)
+        d_vx = np.stack([2 * drag * vx - power * pedal_on / w**2 * fast, r, vy], axis=-1)
+        d_vy = d_force_f + d_force_r - np.stack([r, zero, vx], axis=-1)
+        d_r = mass_per_inertia * (self.a * d_force_f - self.b * d_force_r)
+        jx = np.stack([d_vx, d_vy, d_r], axis=1)
+        # Pedal: the throttle's slope above 0, the brake's below, their mean at exactly 0.
+        on_throttle = throttle + power / w
+        d_pedal = np.where(
+            pedal > 0, on_throttle, np.where(pedal < 0, brake, (on_throttle + brake) / 2)
+        )
+        d_steer = np.deg2rad(steer)
+        ju = np.zeros((len(vx), 3, 2))
+        ju[:, 0, 1] = d_pedal
+        ju[:, 1, 0] = d_steer
+        ju[:, 2, 0] = mass_per_inertia * self.a * d_steer
+        return jx, ju
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        x0, inputs = check_rollout_args(x0, inputs, 3, 2)
+        u = _features(inputs)
+        x = np.empty((*inputs.shape[:-1][:-1], inputs.shape[-2] + 1, 3))
+        x[..., 0, :] = x0
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(inputs.shape[-2]):
+                state = x[..., k, :] + self.dt_ * self.derivative(x[..., k, :], u[..., k, :])
+                state[..., 0] = np.maximum(state[..., 0], 0.0)  # brakes stop the car, no more
+                x[..., k + 1, :] = state
+        return x
+
+    # -- the LinearizableModel contract (normalized units) ----------------------------------
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.normalizer_.states(x), dtype=float)
+
+    def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """One Euler step in normalized units (no stop at vx = 0: the smooth model the MPC sees)."""
+        normalizer = self.normalizer_
+        x = normalizer.states_inverse(z)
+        u = _features(normalizer.inputs_inverse(v))
+        return normalizer.states(x + self.dt_ * self.derivative(x, u))
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        normalizer = self.normalizer_
+        x = normalizer.states_inverse(z)
+        u = _features(normalizer.inputs_inverse(v))
+        jx, ju = self._jacobians(x, u)
+        state_span, input_span = _spans(normalizer)  # x = span z + min, features likewise
+        A = np.eye(3) + self.dt_ * jx * state_span[None, :] / state_span[:, None]
+        B = self.dt_ * ju * input_span[None, :] / state_span[:, None]
+        d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
+        return A, B, d
+
+    # -- model file ---------------------------------------------------------------------------
+
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
+        return {"coefficients": self.coefficients_, "dt": np.array([self.dt_])}
+
+    def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
+        self.coefficients_ = state["coefficients"].numpy().astype(np.float64)
+        self.dt_ = float(state["dt"].numpy()[0])
+
+
+def _features(u: np.ndarray) -> np.ndarray:
+    """(steering-wheel degrees, signed pedal scale): the inputs the model is linear in."""
+    u = np.asarray(u, dtype=float)
+    return np.stack([u[..., 0], pedal_scale(u[..., 1])], axis=-1)
+
+
+def _spans(normalizer: MinMaxNormalizer) -> tuple[np.ndarray, np.ndarray]:
+    """Physical units per normalized unit: of the states, and of the input features."""
+    state_span = normalizer.states_inverse(np.ones(3)) - normalizer.states_inverse(np.zeros(3))
+    # inputs() is affine in the features: feature 1 (1° of steering, full throttle) minus 0.
+    per_feature = normalizer.inputs(np.array([1.0, 0.2])) - normalizer.inputs(np.zeros(2))
+    return state_span, 1.0 / per_feature
+
+
+def _lstsq(regressors: np.ndarray, target: np.ndarray) -> np.ndarray:
+    solution, *_ = np.linalg.lstsq(regressors, target, rcond=None)
+    return np.asarray(solution, dtype=np.float64)
