@@ -18,7 +18,8 @@ constant power g_2 / v, brake). One Euler step of dt (the data's sampling period
 Measured, as a person would with a tape and a set of axle scales: the CG's distances to the
 front and rear axles, a and b (``cg_to_front_m``, ``cg_to_rear_m``: wheelbase and axle loads),
 and, for reporting only, the mass. Identified by least squares on the training episodes
-(samples at vx >= ``min_speed_mps``; nothing is read from the plant's configuration): the
+(samples at vx >= ``min_speed_mps`` and, for the lateral and yaw equations, in the tyres'
+linear range |ay| <= ``max_lateral_accel_mps2``; nothing is read from the plant's configuration): the
 lateral equation is linear in (C_f / m, C_r / m, C_f / (m i_s)), which gives the cornering
 stiffnesses per unit mass and the steering ratio; then the yaw equation is linear in m / I_z
 given the axle forces just found; then the longitudinal equation in (c_0, c_2, g_1, g_2, g_3).
@@ -58,6 +59,8 @@ class SingleTrack(Learner):
         mass_kg: measured; used only to report C_f, C_r (N/rad) and I_z (kg m²).
         min_speed_mps: below it the lateral terms use this speed (1/vx stays bounded), and
             samples slower than it do not enter the lateral fit.
+        max_lateral_accel_mps2: the lateral and yaw fits use samples below this lateral
+            acceleration only (the tyres' linear range, about 0.4 g).
 
     Fitted attributes: ``coefficients_`` (len(NAMES),), ``dt_`` (s), ``normalizer_``;
     ``C_`` = I and ``lift`` = the normalization (a lifted state of the state itself).
@@ -71,16 +74,19 @@ class SingleTrack(Learner):
         cg_to_rear_m: float = 1.55,
         mass_kg: float = 1500.0,
         min_speed_mps: float = 3.0,
+        max_lateral_accel_mps2: float = 4.0,
     ) -> None:
         self.a = check_positive("cg_to_front_m", cg_to_front_m)
         self.b = check_positive("cg_to_rear_m", cg_to_rear_m)
         self.mass_kg = check_positive("mass_kg", mass_kg)
         self.min_speed = check_positive("min_speed_mps", min_speed_mps)
+        self.max_lateral_accel = check_positive("max_lateral_accel_mps2", max_lateral_accel_mps2)
         self._hyperparameters: dict[str, Any] = {
             "cg_to_front_m": self.a,
             "cg_to_rear_m": self.b,
             "mass_kg": self.mass_kg,
             "min_speed_mps": self.min_speed,
+            "max_lateral_accel_mps2": self.max_lateral_accel,
         }
         self.C_ = np.eye(3)
 
@@ -99,16 +105,19 @@ class SingleTrack(Learner):
         u = np.concatenate([_features(e.inputs[:-1]) for e in train])
         rate = np.concatenate([np.diff(e.states, axis=0) for e in train]) / dt
         vx, vy, r = x.T
-        moving = vx >= self.min_speed
+        lateral_accel = rate[:, 1] + vx * r
+        # The linear tyre range: where a linear single-track model is meant to hold.
+        moving = (vx >= self.min_speed) & (np.abs(lateral_accel) <= self.max_lateral_accel)
         if moving.sum() < 10 * len(NAMES):
             raise ValueError(
                 f"single_track: only {int(moving.sum())} training samples at vx >= "
-                f"{self.min_speed} m/s (learner.min_speed_mps); too few to identify {len(NAMES)} "
-                "parameters"
+                f"{self.min_speed} m/s (learner.min_speed_mps) and |ay| <= "
+                f"{self.max_lateral_accel} m/s² (learner.max_lateral_accel_mps2); too few to "
+                f"identify {len(NAMES)} parameters"
             )
         alpha_f, alpha_r, delta = self._slips(x, u)
         lateral = np.column_stack([alpha_f, alpha_r, delta])[moving]
-        lateral_target = (rate[:, 1] + vx * r)[moving]
+        lateral_target = lateral_accel[moving]
         front, rear, steer = _lstsq(lateral, lateral_target)
         force_f = front * alpha_f + steer * delta  # F_yf / m
         force_r = rear * alpha_r
@@ -135,7 +144,7 @@ class SingleTrack(Learner):
             "cornering_stiffness_front_n_per_rad": front * self.mass_kg,
             "cornering_stiffness_rear_n_per_rad": rear * self.mass_kg,
             "yaw_inertia_kg_m2": self.mass_kg / values["mass_per_inertia"],
-            "steering_ratio": front / steer * np.pi / 180.0 if steer else float("inf"),
+            "steering_ratio": front / steer if steer else float("inf"),
             **{k: values[k] for k in LONGITUDINAL},
         }
 
