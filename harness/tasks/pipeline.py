@@ -12,7 +12,8 @@ Sections written to ``metrics.json``:
   against the plant at 0.3 s and 1.5 s (see ``harness/step_response.py``);
 - ``spectrum``: the eigenvalues of a Koopman model's state matrices and the modes outside the
   unit circle, named (see ``harness/spectrum.py``); a bilinear model is not tracked (below);
-- ``tracking``: DE-MPC on the plant (Koopman learners only). The top-level keys
+- ``tracking``: DE-MPC on the plant (lifted-linear, bilinear and linearizable learners; the
+  others report ``tracking.skipped``). The top-level keys
   (``rmse``, ``solve_time_ms``, ``deadline_misses``, ``solver_failures``) are the paper's
   experiment, tracking the first reference (the first test episode); ``tracking.references``
   holds every reference of ``task.references`` (``conf/reference/``), e.g. the ISO 3888 double
@@ -35,6 +36,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from controllers.config import OwnModelFactory
 from harness import spectrum, step_response, training_report
 from harness.config import as_object
 from harness.data.collect import prepare
@@ -133,12 +135,13 @@ class Pipeline:
                 output_dir=output_dir,
             )
             sections["robustness"] = _one_learner(repeated, self.learner_name)
-        tracking = self._track(learner, plant, dataset.test, recorder, output_dir)
+        models = self._controller_models(learner, dataset)
+        tracking = self._track(models, learner, plant, dataset.test, recorder, output_dir)
         if tracking is not None:
             sections["tracking"] = tracking
         if self.other_plants:
             sections["generalization"] = {
-                name: self._generalize(name, other, learner, dataset, recorder, output_dir)
+                name: self._generalize(name, other, models, learner, dataset, recorder, output_dir)
                 for name, other in self.other_plants.items()
             }
         return sections
@@ -190,8 +193,27 @@ class Pipeline:
         )
         return _one_learner(predictions, self.learner_name)
 
+    def _controller_models(self, learner: Learner, dataset: Dataset) -> dict[str, Learner | str]:
+        """The model each controller runs on: the run's learner, or, for a controller that
+        brings its own (``OwnModelFactory``: the physics baseline), that model fitted on the
+        same training episodes; where that fit refuses the data (a tiny dataset), the reason,
+        reported as the controller's ``skipped`` instead of failing the run."""
+        models: dict[str, Learner | str] = {}
+        for name, make in self.controllers.items():
+            if not isinstance(make, OwnModelFactory):
+                models[name] = learner
+                continue
+            own = make.learner()
+            try:
+                models[name] = own.fit(dataset.train, dataset.validation, dataset.normalizer)
+            except ValueError as error:
+                log.warning("%s not tracked: %s", name, error)
+                models[name] = f"{name} could not identify its {own.name} model: {error}"
+        return models
+
     def _track(
         self,
+        models: Mapping[str, Learner | str],
         learner: Learner,
         plant: Sedan,
         episodes: Sequence[Episode],
@@ -212,9 +234,13 @@ class Pipeline:
         }
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
+            model = models[controller_name]
+            if isinstance(model, str):
+                by_controller[controller_name] = {"skipped": model}
+                continue
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
-                controller = make_controller(learner, plant.dt)
+                controller = make_controller(model, plant.dt)
                 stem = f"tracking_{controller_name}_{name}"
                 metrics, _ = track(
                     plant,
@@ -231,6 +257,8 @@ class Pipeline:
                 )
             by_controller[controller_name] = runs
         first = next(iter(by_controller.values()))
+        if "skipped" in first:
+            return {"skipped": first["skipped"], "controllers": by_controller}
         return {
             **next(iter(first.values())),
             "reference": next(iter(first)),
@@ -277,6 +305,7 @@ class Pipeline:
         self,
         name: str,
         plant: Sedan,
+        models: Mapping[str, Learner | str],
         learner: Learner,
         dataset: Dataset,
         recorder: Recorder,
@@ -288,7 +317,7 @@ class Pipeline:
         directory.mkdir(parents=True, exist_ok=True)
         prefix = f"generalization/{name}/"
         result = {"prediction": self._predict(learner, episodes, recorder, directory, prefix)}
-        tracking = self._track(learner, plant, episodes, recorder, directory, prefix)
+        tracking = self._track(models, learner, plant, episodes, recorder, directory, prefix)
         if tracking is not None:
             result["tracking"] = tracking
         return result
