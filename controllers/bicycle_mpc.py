@@ -51,6 +51,7 @@ class BicycleMPCConfig(DEMPCConfig):
         if not isinstance(model, SingleTrack):
             raise ValueError(
                 "controller=bicycle_mpc runs on the single-track model it identifies itself "
-                f"(fit controller.learner() on the training drives), not on a {type(model).__name__}"
+                "(fit controller.learner() on the training drives), not on a "
+                f"{type(model).__name__}"
             )
         return super().__call__(model, control_period_s)

@@ -19,10 +19,11 @@ Measured, as a person would with a tape and a set of axle scales: the CG's dista
 front and rear axles, a and b (``cg_to_front_m``, ``cg_to_rear_m``: wheelbase and axle loads),
 and, for reporting only, the mass. Identified by least squares on the training episodes
 (samples at vx >= ``min_speed_mps`` and, for the lateral and yaw equations, in the tyres'
-linear range |ay| <= ``max_lateral_accel_mps2``; nothing is read from the plant's configuration): the
-lateral equation is linear in (C_f / m, C_r / m, C_f / (m i_s)), which gives the cornering
-stiffnesses per unit mass and the steering ratio; then the yaw equation is linear in m / I_z
-given the axle forces just found; then the longitudinal equation in (c_0, c_2, g_1, g_2, g_3).
+linear range |ay| <= ``max_lateral_accel_mps2``; nothing is read from the plant's
+configuration): the lateral equation is linear in (C_f / m, C_r / m, C_f / (m i_s)), which
+gives the cornering stiffnesses per unit mass and the steering ratio; then the yaw equation is
+linear in m / I_z given the axle forces just found; then the longitudinal equation in
+(c_0, c_2, g_1, g_2, g_3).
 The mass cancels: it only converts the fitted per-mass values into N/rad and kg·m² in
 :attr:`SingleTrack.parameters`.
 
