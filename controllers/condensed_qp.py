@@ -461,18 +461,25 @@ class TimeVaryingQP(CondensedQP):
         self._free = np.zeros(self.n * Np)
 
     def set_model(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None = None) -> None:
-        """The model of this step: A (Np, N, N), B (Np, N, m), d (Np, N) (default 0)."""
+        """The model of this step: A (Np, N, N), B (Np, N, m), d (Np, N) (default 0); or one
+        (A (1, N, N), B (1, N, m), d (1, N)) held over the whole horizon (a frozen
+        linearisation: Θ from one step response, far cheaper for a large N and Np)."""
         Np, N, m, Nc = self.Np, self.N, self.m, self.Nc
         A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
-        d = np.zeros((Np, N)) if d is None else np.asarray(d, dtype=float)
-        if A.shape != (Np, N, N) or B.shape != (Np, N, m) or d.shape != (Np, N):
+        K = A.shape[0] if A.ndim == 3 and A.shape[0] == 1 else Np
+        d = np.zeros((K, N)) if d is None else np.asarray(d, dtype=float)
+        if A.shape != (K, N, N) or B.shape != (K, N, m) or d.shape != (K, N):
             raise ValueError(
-                f"time-varying model must be A ({Np}, {N}, {N}), B ({Np}, {N}, {m}), "
-                f"d ({Np}, {N}); got {A.shape}, {B.shape}, {d.shape}"
+                f"time-varying model must be A ({Np} or 1, {N}, {N}), B ({K}, {N}, {m}), "
+                f"d ({K}, {N}); got {A.shape}, {B.shape}, {d.shape}"
             )
-        self._A, self._B, self._d = A, B, d
         self._free_key = None
-        self.theta = time_varying_theta(A, B, self.C, Nc)
+        if K == 1:
+            self.theta = time_invariant_theta(A[0], B[0], self.C, Np, Nc)
+            A, B, d = (np.broadcast_to(a, (Np, *a.shape[1:])) for a in (A, B, d))
+        else:
+            self.theta = time_varying_theta(A, B, self.C, Nc)
+        self._A, self._B, self._d = A, B, d
         M = m * Nc
         q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, self.n, M)).reshape(
             self.n * Np, M
@@ -482,7 +489,8 @@ class TimeVaryingQP(CondensedQP):
         P[:M, :M] = 2 * (self.theta.T @ q_theta + self._R_blocks)
         P[M, M] = 2 * self.rho
         self.P = np.asfortranarray((P + P.T) / 2)
-        self._gain = cho_solve(cho_factor(self.P[:M, :M]), 2 * q_theta.T)
+        factor = cho_factor(self.P[:M, :M], check_finite=False)
+        self._gain = cho_solve(factor, 2 * q_theta.T, check_finite=False)
         self._P_V = np.asfortranarray(self._T.T @ self.P @ self._T)
         self._piqp_new_hessian = True
         self._dual_ready = False
@@ -514,6 +522,15 @@ class TimeVaryingQP(CondensedQP):
             self._build_dual()
             self._dual_ready = True
 
+    def _build_dual(self) -> None:
+        """As the time-invariant QP's, without its finiteness checks (P is ours, every step)."""
+        G, M = self.G, self._M
+        p_inv = cho_solve(cho_factor(self.P, check_finite=False), np.eye(M + 1), check_finite=False)
+        p_inv_gt = p_inv @ G.T
+        self._Zt = np.ascontiguousarray(p_inv_gt.T)
+        self._K = np.ascontiguousarray(G @ p_inv_gt)
+        self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
+
 
 def time_varying_theta(A: np.ndarray, B: np.ndarray, C: np.ndarray, Nc: int) -> np.ndarray:
     """Θ (n Np, m Nc): y_i's response to the increment Δv_j of a time-varying model.
@@ -526,12 +543,31 @@ def time_varying_theta(A: np.ndarray, B: np.ndarray, C: np.ndarray, Nc: int) -> 
     M = m * Nc
     response = np.zeros((N, M))
     history = np.empty((Np, N, M))
+    blocks = response.reshape(N, Nc, m)  # a view: block j is S_j
     for k in range(Np):
-        active = m * min(k + 1, Nc)
-        response[:, :active] = A[k] @ response[:, :active]
-        response[:, :active] += np.tile(B[k], active // m)
+        active = min(k + 1, Nc)
+        response[:, : m * active] = A[k] @ response[:, : m * active]
+        blocks[:, :active] += B[k][:, None, :]
         history[k] = response
     return (C @ history).reshape(Np * C.shape[0], M)
+
+
+def time_invariant_theta(
+    A: np.ndarray, B: np.ndarray, C: np.ndarray, Np: int, Nc: int
+) -> np.ndarray:
+    """Θ (n Np, m Nc) of a time-invariant model: block (i, j) is C S_{i+1-j} for j <= i, with
+    the step responses S_l = Σ_{q<l} A^q B (one N×N by N×m product per step)."""
+    N, m = B.shape
+    steps = np.zeros((Np + 1, C.shape[0], m))  # C S_0 = 0
+    power_b, step = B.copy(), np.zeros((N, m))
+    for length in range(1, Np + 1):
+        step += power_b
+        power_b = A @ power_b
+        steps[length] = C @ step
+    rows, columns = np.arange(Np)[:, None], np.arange(Nc)[None, :]
+    index = np.where(columns <= rows, rows + 1 - columns, 0)  # (Np, Nc) into steps
+    blocks = steps[index]  # (Np, Nc, n, m)
+    return blocks.transpose(0, 2, 1, 3).reshape(Np * C.shape[0], Nc * m)
 
 
 def _check_piqp_shapes(

@@ -38,6 +38,10 @@ from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_M
 log = logging.getLogger(__name__)
 
 STATES, INPUTS = 3, 2
+# Where a time-varying model is linearised: at every point of the previous plan (exact along
+# the horizon), or at the current state and next input only, held over the horizon (frozen:
+# Θ from one step response; for N = 104 at 60/50 about 10x cheaper, see docs/control.md).
+LINEARIZATIONS = ("plan", "frozen")
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,7 @@ class DEMPCConfig:
     max_iter: int = 100
     active_set: bool = True
     sqp_iterations: int = 1
+    linearization: str = "plan"
 
     def __post_init__(self) -> None:
         _check_types(self)
@@ -75,6 +80,11 @@ class DEMPCConfig:
         if not (float(self.sqp_iterations).is_integer() and 1 <= self.sqp_iterations <= 3):
             raise ValueError(
                 f"controller.sqp_iterations must be 1, 2 or 3 (got {self.sqp_iterations})"
+            )
+        if self.linearization not in LINEARIZATIONS:
+            raise ValueError(
+                f"controller.linearization must be one of {', '.join(LINEARIZATIONS)} "
+                f"(got {self.linearization!r})"
             )
         _check_qp_size(int(self.Np), int(self.Nc))
         self.weights()
@@ -234,16 +244,15 @@ class DEMPC:
     def _solve_time_varying(
         self, model: LinearizableModel, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray
     ) -> QPSolution:
-        """Linearise along the input guess rolled out from z, solve; repeat along the new plan."""
+        """Linearise along the input guess rolled out from z (or, frozen, at z and the next
+        input only), solve; ``sqp_iterations`` times, each along the plan just found."""
         assert isinstance(self.qp, TimeVaryingQP)
         guess = self._input_guess(v_prev)
         for _ in range(self.sqp_iterations):
-            states = np.empty((self.Np, z.shape[0]))
-            state = z
-            for k in range(self.Np):  # z̄_0 .. z̄_{Np-1}: each point needs the previous one
-                states[k] = state
-                state = model.step(state, guess[k])
-            self.qp.set_model(*model.linearize(states, guess))
+            if self.config.linearization == "frozen":
+                self.qp.set_model(*model.linearize(z[None], guess[:1]))
+            else:
+                self.qp.set_model(*model.linearize(_rollout(model, z, guess), guess))
             solution = self.qp.solve(z, v_prev, y_ref)
             if not solution.ok:
                 break
@@ -266,6 +275,16 @@ class DEMPC:
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
         return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
+
+
+def _rollout(model: LinearizableModel, z: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+    """(K, N): z̄_0 = z, z̄_{k+1} = step(z̄_k, v_k), the points a plan of K inputs passes."""
+    states = np.empty((len(inputs), z.shape[0]))
+    state = z
+    for k in range(len(inputs)):  # each point needs the previous one
+        states[k] = state
+        state = model.step(state, inputs[k])
+    return states
 
 
 def _held(plan: np.ndarray, steps: int) -> np.ndarray:

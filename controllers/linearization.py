@@ -45,12 +45,13 @@ class BilinearLinearization:
     def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         size, m = self.A.shape[0], self.B.shape[1]
         products = (z @ self._stacked).reshape(*np.shape(z)[:-1], 1 + m, size)
-        bilinear = np.einsum("...j,...jn->...n", v - self.v0, products[..., 1:, :])
+        vbar = (v - self.v0)[..., None, :]  # (..., 1, m)
+        bilinear = (vbar @ products[..., 1:, :])[..., 0, :]
         return products[..., 0, :] + bilinear + v @ self.B.T
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        hz = np.einsum("jab,kb->kaj", self.H, z)  # (K, N, m): column j is H_j z̄_k
-        A = self.A + np.einsum("kj,jab->kab", v - self.v0, self.H)
+        hz = np.transpose(self.H @ z.T, (2, 1, 0))  # (K, N, m): column j is H_j z̄_k
+        A = self.A + np.tensordot(v - self.v0, self.H, axes=1)
         B = self.B + hz
-        d = -np.einsum("kaj,kj->ka", hz, v)
+        d = -(hz @ v[:, :, None])[:, :, 0]
         return A, B, d

@@ -20,10 +20,10 @@ front and rear axles, a and b (``cg_to_front_m``, ``cg_to_rear_m``: wheelbase an
 and, for reporting only, the mass. Identified by least squares on the training episodes
 (samples at vx >= ``min_speed_mps`` and, for the lateral and yaw equations, in the tyres'
 linear range |ay| <= ``max_lateral_accel_mps2``; nothing is read from the plant's
-configuration): the lateral equation is linear in (C_f / m, C_r / m, C_f / (m i_s)), which
-gives the cornering stiffnesses per unit mass and the steering ratio; then the yaw equation is
-linear in m / I_z given the axle forces just found; then the longitudinal equation in
-(c_0, c_2, g_1, g_2, g_3).
+configuration): the lateral and yaw equations together, linear in (C_f / m, C_r / m,
+C_f / (m i_s)) for a given m / I_z, by separable least squares over m / I_z (this gives the
+cornering stiffnesses per unit mass, the steering ratio and the yaw inertia per unit mass);
+then the longitudinal equation, linear in (c_0, c_2, g_1, g_2, g_3).
 The mass cancels: it only converts the fitted per-mass values into N/rad and kg·m² in
 :attr:`SingleTrack.parameters`.
 
@@ -40,6 +40,7 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
+from scipy.optimize import minimize_scalar
 
 from harness.data.episode import Episode, MinMaxNormalizer, pedal_scale
 from learners.base import Learner, check_episodes, check_positive, check_rollout_args
@@ -96,7 +97,7 @@ class SingleTrack(Learner):
     def fit(
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
-        """Three least-squares problems on the Euler one-step derivatives of ``train``."""
+        """Least squares on the Euler one-step derivatives of ``train`` (module docstring)."""
         check_episodes(train, "train", normalizer)
         if validation:
             check_episodes(validation, "validation", normalizer)
@@ -116,14 +117,9 @@ class SingleTrack(Learner):
                 f"{self.max_lateral_accel} m/s² (learner.max_lateral_accel_mps2); too few to "
                 f"identify {len(NAMES)} parameters"
             )
-        alpha_f, alpha_r, delta = self._slips(x, u)
-        lateral = np.column_stack([alpha_f, alpha_r, delta])[moving]
-        lateral_target = lateral_accel[moving]
-        front, rear, steer = _lstsq(lateral, lateral_target)
-        force_f = front * alpha_f + steer * delta  # F_yf / m
-        force_r = rear * alpha_r
-        moment = (self.a * force_f - self.b * force_r)[moving]
-        (mass_per_inertia,) = _lstsq(moment[:, None], rate[moving, 2])
+        front, rear, steer, mass_per_inertia = self._fit_lateral(
+            x[moving], u[moving], lateral_accel[moving], rate[moving, 2]
+        )
         rolling_regime = vx > 0.5  # at standstill the brakes hold the car: no dynamics to fit
         longitudinal = self._longitudinal_regressors(x, u)[rolling_regime]
         target = (rate[:, 0] - vy * r)[rolling_regime]
@@ -134,6 +130,38 @@ class SingleTrack(Learner):
         self.dt_ = dt
         self.normalizer_ = normalizer
         return self
+
+    def _fit_lateral(
+        self, x: np.ndarray, u: np.ndarray, lateral_accel: np.ndarray, yaw_accel: np.ndarray
+    ) -> tuple[float, float, float, float]:
+        """(C_f/m, C_r/m, C_f/(m i_s), m/I_z): both equations together, by separable least
+        squares (for a given m/I_z both are linear in the rest; the best m/I_z by a bounded
+        scalar search). Each equation is scaled by its spread so both count.
+
+        Fitted apart, the lateral equation alone cannot tell C_f from C_r (both multiply
+        nearly −vy/vx): on ``data=default`` it gave C_r = 5·C_f and a model that lost the lane
+        change; the yaw equation weighs them with +a and −b and separates them.
+        """
+        alpha_f, alpha_r, delta = self._slips(x, u)
+        lateral = np.column_stack([alpha_f, alpha_r, delta]) / lateral_accel.std()
+        yaw = np.column_stack([self.a * alpha_f, -self.b * alpha_r, self.a * delta])
+        yaw /= yaw_accel.std()
+        target = np.concatenate([lateral_accel / lateral_accel.std(), yaw_accel / yaw_accel.std()])
+
+        def fit(log_ratio: float) -> tuple[np.ndarray, float]:
+            regressors = np.vstack([lateral, np.exp(log_ratio) * yaw])
+            solution = _lstsq(regressors, target)
+            return solution, float(np.sum((regressors @ solution - target) ** 2))
+
+        # m / I_z = 1 / (yaw radius of gyration)²: radii from 0.3 m to 10 m cover any car.
+        best = minimize_scalar(
+            lambda log_ratio: fit(log_ratio)[1],
+            bounds=(np.log(0.01), np.log(11.0)),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
+        (front, rear, steer), _ = fit(float(best.x))
+        return float(front), float(rear), float(steer), float(np.exp(best.x))
 
     @property
     def parameters(self) -> dict[str, float]:

@@ -98,6 +98,16 @@ def test_a_constant_time_varying_model_solves_the_time_invariant_qp(
     y_ref = np.tile(target, Np)
     np.testing.assert_allclose(tv.theta, lti.theta, atol=1e-12)
     np.testing.assert_allclose(tv.P, lti.P, rtol=1e-10, atol=1e-9)
+    frozen = TimeVaryingQP(model.C_, 2, **{**SETTINGS, **box})
+    frozen.set_model(model.A_[None], model.B_[None])  # one model held over the horizon
+    np.testing.assert_allclose(frozen.theta, lti.theta, atol=1e-12)
+    np.testing.assert_allclose(
+        frozen.predict(
+            z := model.lift(np.array([20.0, 0.0, 0.0])), np.full(2, 0.5), np.ones((10, 2))
+        ),
+        lti.predict(z, np.full(2, 0.5), np.ones((10, 2))),
+        atol=1e-12,
+    )
     expected, got = lti.solve(z, v_prev, y_ref), tv.solve(z, v_prev, y_ref)
     assert got.path == expected.path
     np.testing.assert_allclose(got.dv, expected.dv, atol=1e-8)
@@ -153,12 +163,21 @@ def test_the_bilinear_linearisation_equals_finite_differences_of_the_bilinear_st
     np.testing.assert_allclose(linear.step(z[0], v[0]), expected, atol=1e-12)
 
 
-@pytest.mark.parametrize("horizons", [{"Np": 10, "Nc": 7}, {"Np": 60, "Nc": 50}])
-def test_the_exact_bilinear_model_tracks_a_feasible_reference_on_its_own_plant(horizons) -> None:
+@pytest.mark.parametrize(
+    ("horizons", "linearization"),
+    [
+        ({"Np": 10, "Nc": 7}, "plan"),
+        ({"Np": 60, "Nc": 50}, "plan"),
+        ({"Np": 10, "Nc": 7}, "frozen"),
+    ],
+)
+def test_the_exact_bilinear_model_tracks_a_feasible_reference_on_its_own_plant(
+    horizons, linearization
+) -> None:
     model = toy_bilinear_model()
     reference = feasible_reference(model)
     plant = ModelPlant(model, x0=reference[0])
-    controller = DEMPC(model, DEMPCConfig(**horizons))
+    controller = DEMPC(model, DEMPCConfig(**horizons, linearization=linearization))
     assert isinstance(controller.qp, TimeVaryingQP)  # read as bilinear, not as A_, B_ alone
     metrics, _ = track(plant, controller, reference, name="exact", recorder=Recorder())
     assert metrics["rmse"]["vx"] < 0.05  # of a 40 m/s range
@@ -200,6 +219,11 @@ def test_more_sqp_iterations_plan_along_their_own_plan() -> None:
 def test_sqp_iterations_must_be_one_to_three(value: float) -> None:
     with pytest.raises(ValueError, match=r"controller\.sqp_iterations must be 1, 2 or 3"):
         DEMPCConfig(sqp_iterations=value)  # type: ignore[arg-type]
+
+
+def test_the_linearization_must_be_plan_or_frozen() -> None:
+    with pytest.raises(ValueError, match=r"controller\.linearization must be one of plan, frozen"):
+        DEMPCConfig(linearization="everywhere")
 
 
 @dataclass
