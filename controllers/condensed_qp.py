@@ -523,12 +523,38 @@ class TimeVaryingQP(CondensedQP):
             self._dual_ready = True
 
     def _build_dual(self) -> None:
-        """As the time-invariant QP's, without its finiteness checks (P is ours, every step)."""
-        G, M = self.G, self._M
+        """K = G P⁻¹ Gᵀ and the rows of G P⁻¹ from the structure of G, every step it is needed.
+
+        Every row of G is a signed sum of three kinds: a = [diag(1/Δv_max), 0] (rates),
+        b = [0, 1] (slack) and c = [L, 0] (cumulative inputs, L block lower-triangular ones):
+        the rows are a − b, −a − b, c, −c, −b. So G P⁻¹ needs only a P⁻¹ (row scaling), b P⁻¹
+        (a row) and c P⁻¹ (block cumulative sums), and K only their products with a, b, c
+        (column scaling, a column, block cumulative sums): no product with G itself, about
+        10x fewer operations than the dense G P⁻¹ Gᵀ at Nc = 50.
+        """
+        M, m, Nc = self._M, self.m, self.Nc
         p_inv = cho_solve(cho_factor(self.P, check_finite=False), np.eye(M + 1), check_finite=False)
-        p_inv_gt = p_inv @ G.T
-        self._Zt = np.ascontiguousarray(p_inv_gt.T)
-        self._K = np.ascontiguousarray(G @ p_inv_gt)
+        rate = self._inv_rate
+        a_p = rate[:, None] * p_inv[:M]  # (M, M+1)
+        b_p = p_inv[M:]  # (1, M+1)
+        c_p = p_inv[:M].reshape(Nc, m, M + 1).cumsum(axis=0).reshape(M, M + 1)
+        self._Zt = np.ascontiguousarray(np.vstack([a_p - b_p, -a_p - b_p, c_p, -c_p, -b_p]))
+        basis = np.vstack([a_p, b_p, c_p])  # (2M+1, M+1) rows of [a; b; c] P⁻¹
+        with_a = basis[:, :M] * rate  # (·)aᵀ
+        with_b = basis[:, M:]  # (·)bᵀ
+        with_c = basis[:, :M].reshape(-1, Nc, m).cumsum(axis=1).reshape(-1, M)
+        pa, pb, pc = slice(0, M), slice(M, M + 1), slice(M + 1, 2 * M + 1)
+        aa, ab, ac = with_a[pa], with_b[pa], with_c[pa]
+        ba, bb, bc = with_a[pb], with_b[pb], with_c[pb]
+        ca, cb, cc = with_a[pc], with_b[pc], with_c[pc]
+        # Row kinds (a - b, -a - b, c, -c, -b) against the same column kinds.
+        upper = [aa - ab - ba + bb, -aa - ab + ba + bb, ac - bc, -ac + bc, -ab + bb]
+        lower = [-aa + ab - ba + bb, aa + ab + ba + bb, -ac - bc, ac + bc, ab + bb]
+        cumulative = [ca - cb, -ca - cb, cc, -cc, -cb]
+        slack = [-ba + bb, ba + bb, -bc, bc, bb]
+        self._K = np.ascontiguousarray(
+            np.block([upper, lower, cumulative, [-x for x in cumulative], slack])
+        )
         self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
 
 

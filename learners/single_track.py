@@ -51,6 +51,7 @@ LATERAL = ("front_per_mass", "rear_per_mass", "steer_per_mass")  # C_f/m, C_r/m,
 YAW = ("mass_per_inertia",)  # m / I_z
 LONGITUDINAL = ("rolling", "drag", "throttle", "throttle_power", "brake")  # c_0 c_2 g_1 g_2 g_3
 NAMES = LATERAL + YAW + LONGITUDINAL
+_Maps = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class SingleTrack(Learner):
@@ -91,6 +92,7 @@ class SingleTrack(Learner):
             "max_lateral_accel_mps2": self.max_lateral_accel,
         }
         self.C_ = np.eye(3)
+        self._maps: tuple[MinMaxNormalizer, _Maps] | None = None
 
     # -- identification ---------------------------------------------------------------------
 
@@ -195,11 +197,17 @@ class SingleTrack(Learner):
         """ẋ (..., 3) at physical states x (..., 3) and input features u (..., 2) (steering
         wheel in degrees, signed pedal scale)."""
         front, rear, steer, mass_per_inertia = self.coefficients_[:4]
+        rolling, drag, throttle_gain, power, brake_gain = self.coefficients_[4:]
         vx, vy, r = x[..., 0], x[..., 1], x[..., 2]
         alpha_f, alpha_r, delta = self._slips(x, u)
         force_f = front * alpha_f + steer * delta
         force_r = rear * alpha_r
-        dvx = vy * r + self._longitudinal_regressors(x, u) @ self.coefficients_[4:]
+        throttle = np.maximum(u[..., 1], 0.0)
+        w = np.maximum(vx, self.min_speed)
+        push = (
+            throttle_gain * throttle + power * throttle / w + brake_gain * np.minimum(u[..., 1], 0)
+        )
+        dvx = vy * r + rolling + drag * vx * vx + push  # as _longitudinal_regressors
         dvy = force_f + force_r - vx * r
         dr = mass_per_inertia * (self.a * force_f - self.b * force_r)
         return np.stack([dvx, dvy, dr], axis=-1)
@@ -253,21 +261,28 @@ class SingleTrack(Learner):
 
     def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         """One Euler step in normalized units (no stop at vx = 0: the smooth model the MPC sees)."""
-        normalizer = self.normalizer_
-        x = normalizer.states_inverse(z)
-        u = _features(normalizer.inputs_inverse(v))
-        return normalizer.states(x + self.dt_ * self.derivative(x, u))
+        state_span, state_min, input_span, input_min = self._coordinates()
+        x = z * state_span + state_min
+        return z + self.dt_ * self.derivative(x, v * input_span + input_min) / state_span
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        normalizer = self.normalizer_
-        x = normalizer.states_inverse(z)
-        u = _features(normalizer.inputs_inverse(v))
-        jx, ju = self._jacobians(x, u)
-        state_span, input_span = _spans(normalizer)  # x = span z + min, features likewise
+        state_span, state_min, input_span, input_min = self._coordinates()
+        jx, ju = self._jacobians(z * state_span + state_min, v * input_span + input_min)
         A = np.eye(3) + self.dt_ * jx * state_span[None, :] / state_span[:, None]
         B = self.dt_ * ju * input_span[None, :] / state_span[:, None]
         d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
         return A, B, d
+
+    def _coordinates(self) -> _Maps:
+        """(state span, state min, input-feature span, input-feature min): x = span z + min and
+        features = span v + min, the normalizer's affine maps (cached per normalizer)."""
+        if self._maps is None or self._maps[0] is not self.normalizer_:
+            normalizer = self.normalizer_
+            state_span, input_span = _spans(normalizer)
+            state_min = normalizer.states_inverse(np.zeros(3))
+            input_min = np.asarray(normalizer.input_min, dtype=float)
+            self._maps = (normalizer, (state_span, state_min, input_span, input_min))
+        return self._maps[1]
 
     # -- model file ---------------------------------------------------------------------------
 

@@ -247,3 +247,13 @@ class ToyBilinear:
 
     def lift(self, x: np.ndarray) -> np.ndarray:
         return np.asarray(x, dtype=float)
+
+
+def test_the_structured_dual_operator_equals_the_dense_one() -> None:
+    A, B, d, C = random_time_varying(4)
+    qp = TimeVaryingQP(C, 2, **SETTINGS)
+    qp.set_model(A, B, d)
+    qp._ensure_dual()
+    p_inv = np.linalg.inv(qp.P)
+    np.testing.assert_allclose(qp._K, qp.G @ p_inv @ qp.G.T, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(qp._Zt, (p_inv @ qp.G.T).T, rtol=1e-9, atol=1e-12)
