@@ -489,8 +489,10 @@ class TimeVaryingQP(CondensedQP):
         P[:M, :M] = 2 * (self.theta.T @ q_theta + self._R_blocks)
         P[M, M] = 2 * self.rho
         self.P = np.asfortranarray((P + P.T) / 2)
-        factor = cho_factor(self.P[:M, :M], check_finite=False)
-        self._gain = cho_solve(factor, 2 * q_theta.T, check_finite=False)
+        factor, info = dpotrf(self.P[:M, :M], lower=1)
+        if info != 0:  # R > 0 makes the block definite; only a non-finite model gets here
+            raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
+        self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
         self._P_V = np.asfortranarray(self._T.T @ self.P @ self._T)
         self._piqp_new_hessian = True
         self._dual_ready = False
@@ -533,7 +535,8 @@ class TimeVaryingQP(CondensedQP):
         10x fewer operations than the dense G P⁻¹ Gᵀ at Nc = 50.
         """
         M, m, Nc = self._M, self.m, self.Nc
-        p_inv = cho_solve(cho_factor(self.P, check_finite=False), np.eye(M + 1), check_finite=False)
+        factor, info = dpotrf(self.P, lower=1)
+        p_inv = dpotrs(factor, np.eye(M + 1), lower=1)[0] if info == 0 else np.linalg.inv(self.P)
         rate = self._inv_rate
         a_p = rate[:, None] * p_inv[:M]  # (M, M+1)
         b_p = p_inv[M:]  # (1, M+1)
@@ -552,9 +555,13 @@ class TimeVaryingQP(CondensedQP):
         lower = [-aa + ab - ba + bb, aa + ab + ba + bb, -ac - bc, ac + bc, ab + bb]
         cumulative = [ca - cb, -ca - cb, cc, -cc, -cb]
         slack = [-ba + bb, ba + bb, -bc, bc, bb]
-        self._K = np.ascontiguousarray(
-            np.block([upper, lower, cumulative, [-x for x in cumulative], slack])
-        )
+        K = np.empty((self.rows, self.rows))
+        edges = [0, M, 2 * M, 3 * M, 4 * M, 4 * M + 1]
+        kinds = [upper, lower, cumulative, [-x for x in cumulative], slack]
+        for i, row in enumerate(kinds):
+            for j, block in enumerate(row):
+                K[edges[i] : edges[i + 1], edges[j] : edges[j + 1]] = block
+        self._K = K
         self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
 
 

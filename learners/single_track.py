@@ -35,6 +35,7 @@ the time-varying DE-MPC linearises it along its plan (``controller=bicycle_mpc``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Self
 
@@ -93,6 +94,7 @@ class SingleTrack(Learner):
         }
         self.C_ = np.eye(3)
         self._maps: tuple[MinMaxNormalizer, _Maps] | None = None
+        self._floats: tuple[float, ...] = ()
 
     # -- identification ---------------------------------------------------------------------
 
@@ -131,6 +133,7 @@ class SingleTrack(Learner):
         )
         self.dt_ = dt
         self.normalizer_ = normalizer
+        self._maps = None  # new coefficients: the cached maps and floats are rebuilt
         return self
 
     def _fit_lateral(
@@ -263,7 +266,27 @@ class SingleTrack(Learner):
         """One Euler step in normalized units (no stop at vx = 0: the smooth model the MPC sees)."""
         state_span, state_min, input_span, input_min = self._coordinates()
         x = z * state_span + state_min
-        return z + self.dt_ * self.derivative(x, v * input_span + input_min) / state_span
+        u = v * input_span + input_min
+        if x.ndim == 1:  # the MPC's rollout, one point at a time: floats, not 0-d arrays
+            return (
+                z
+                + self.dt_ * np.array(self._derivative_point(*x.tolist(), *u.tolist())) / state_span
+            )
+        return z + self.dt_ * self.derivative(x, u) / state_span
+
+    def _derivative_point(
+        self, vx: float, vy: float, r: float, steer_deg: float, pedal: float
+    ) -> tuple[float, float, float]:
+        """:meth:`derivative` at one point in plain floats (10x faster than numpy on 3-vectors)."""
+        front, rear, steer, mass_per_inertia, rolling, drag, gain, power, brake = self._floats
+        w = max(vx, self.min_speed)
+        force_f = -front * (vy + self.a * r) / w + steer * steer_deg * (math.pi / 180.0)
+        force_r = -rear * (vy - self.b * r) / w
+        throttle = max(pedal, 0.0)
+        push = gain * throttle + power * throttle / w + brake * min(pedal, 0.0)
+        dvx = vy * r + rolling + drag * vx * vx + push
+        dvy = force_f + force_r - vx * r
+        return dvx, dvy, mass_per_inertia * (self.a * force_f - self.b * force_r)
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         state_span, state_min, input_span, input_min = self._coordinates()
@@ -275,13 +298,15 @@ class SingleTrack(Learner):
 
     def _coordinates(self) -> _Maps:
         """(state span, state min, input-feature span, input-feature min): x = span z + min and
-        features = span v + min, the normalizer's affine maps (cached per normalizer)."""
+        features = span v + min, the normalizer's affine maps (cached per normalizer and fit,
+        with the coefficients as floats)."""
         if self._maps is None or self._maps[0] is not self.normalizer_:
             normalizer = self.normalizer_
             state_span, input_span = _spans(normalizer)
             state_min = normalizer.states_inverse(np.zeros(3))
             input_min = np.asarray(normalizer.input_min, dtype=float)
             self._maps = (normalizer, (state_span, state_min, input_span, input_min))
+            self._floats = tuple(self.coefficients_.tolist())
         return self._maps[1]
 
     # -- model file ---------------------------------------------------------------------------
@@ -291,6 +316,7 @@ class SingleTrack(Learner):
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.coefficients_ = state["coefficients"].numpy().astype(np.float64)
+        self._maps = None
         self.dt_ = float(state["dt"].numpy()[0])
 
 
