@@ -130,6 +130,11 @@ def _time_column(timeline: str, t: np.ndarray) -> rr.TimeColumn:
     return rr.TimeColumn(timeline, duration=ns.astype("timedelta64[ns]"))
 
 
+def _on_ground(xy: np.ndarray, height: float = 0.02) -> np.ndarray:
+    """(K, 2) X, Y -> (K, 3) at ``height`` m above the ground grid (no z-fighting)."""
+    return np.column_stack([xy, np.full(len(xy), height)])
+
+
 def _chase_eye(pose: np.ndarray) -> dict[str, tuple[float, float, float]]:
     """Initial 3D camera: behind, left of and above the car at its first finite pose.
 
@@ -160,6 +165,7 @@ class _RolloutInfo:
     inputs: list[str]
     extras: list[str]
     has_pose: bool
+    priority: int = 0
     eye_position: tuple[float, float, float] | None = None
     eye_target: tuple[float, float, float] | None = None
 
@@ -199,6 +205,7 @@ class Recorder:
         state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
         input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
         extra: Mapping[str, np.ndarray] | None = None,
+        priority: int = 0,
     ) -> None:
         """Log one rollout of N samples under entity path ``name``.
 
@@ -212,7 +219,25 @@ class Recorder:
             state_names: Names of the state columns.
             input_names: Names of the input columns.
             extra: Further named (N,) or (N, k) series, logged under ``{name}/extra/<key>``.
+            priority: Tabs go in descending priority, then in logged order: a run's result
+                (the closed-loop tracking, the lane change first) is what the recording opens on.
         """
+
+    def scene(
+        self,
+        name: str,
+        key: str,
+        *,
+        strips: Sequence[np.ndarray] = (),
+        points: np.ndarray | None = None,
+        color: tuple[int, int, int] = (160, 160, 160),
+    ) -> None:
+        """Static world-frame geometry shown in rollout ``name``'s 3D view (a course's lane
+        lines as ``strips`` of (K, 2) X, Y in m; its cones as (C, 2) ``points``)."""
+
+    def path_ahead(self, name: str, time_s: np.ndarray, paths: np.ndarray) -> None:
+        """A path that changes every sample (T, K, 2: X, Y in m), drawn in rollout ``name``'s
+        3D view at each time: the controller's predicted path ahead of the car."""
 
     def series(
         self,
@@ -325,6 +350,7 @@ class RerunRecorder(Recorder):
         state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
         input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
         extra: Mapping[str, np.ndarray] | None = None,
+        priority: int = 0,
     ) -> None:
         """Log one rollout; see :meth:`Recorder.rollout`. Raises ValueError on bad shapes."""
         self._check_open()
@@ -371,6 +397,7 @@ class RerunRecorder(Recorder):
                 inputs=input_names,
                 extras=list(extras),
                 has_pose=pose is not None,
+                priority=priority,
                 **({} if pose is None else _chase_eye(pose)),
             )
         )
@@ -439,6 +466,48 @@ class RerunRecorder(Recorder):
             strict=True,
         )
 
+    def scene(
+        self,
+        name: str,
+        key: str,
+        *,
+        strips: Sequence[np.ndarray] = (),
+        points: np.ndarray | None = None,
+        color: tuple[int, int, int] = (160, 160, 160),
+    ) -> None:
+        """See :meth:`Recorder.scene`; slightly above the ground grid, like the car's path."""
+        rec = self._check_open()
+        entity = _child(_root(name), "scene", key)
+        if strips:
+            lifted = [_on_ground(_as_matrix("strip", strip, len(strip), 2)) for strip in strips]
+            rec.log(entity, rr.LineStrips3D(lifted, colors=[color], radii=0.05), static=True)
+        if points is not None:
+            cones = _on_ground(_as_matrix("points", points, len(points), 2), height=0.35)
+            rec.log(entity, rr.Points3D(cones, colors=[color], radii=0.18), static=True)
+
+    def path_ahead(self, name: str, time_s: np.ndarray, paths: np.ndarray) -> None:
+        """See :meth:`Recorder.path_ahead`; one column send, rows without a finite point skipped."""
+        rec = self._check_open()
+        t = _as_time("time_s", time_s).astype(np.float64)
+        paths = np.asarray(paths, dtype=np.float64)
+        if paths.ndim != 3 or paths.shape[0] != t.shape[0] or paths.shape[2] != 2:
+            raise ValueError(f"paths must be (T={t.shape[0]}, K, 2), got {paths.shape}")
+        keep = np.all(np.isfinite(paths), axis=(1, 2))
+        if not keep.any():
+            return
+        strips = [_on_ground(path, height=0.04) for path in paths[keep]]
+        rec.send_columns(
+            _child(_root(name), "predicted_path"),
+            indexes=[_time_column(SIM_TIMELINE, t[keep])],
+            columns=rr.LineStrips3D.columns(strips=strips),
+            strict=True,
+        )
+        rec.log(
+            _child(_root(name), "predicted_path"),
+            rr.LineStrips3D.from_fields(colors=[(120, 220, 120)], radii=0.06),
+            static=True,
+        )
+
     def series(
         self,
         path: str,
@@ -489,7 +558,7 @@ class RerunRecorder(Recorder):
         """
         tabs: list[rrb.Container | rrb.View] = []
         link = rrb.TimeAxis(link="LinkToGlobal")
-        for r in self._rollouts:
+        for r in sorted(self._rollouts, key=lambda r: -r.priority):  # stable: logged order
             state_views = [
                 rrb.TimeSeriesView(origin=_child(r.root, "state", s), name=_title(s), axis_x=link)
                 for s in r.states
@@ -507,7 +576,12 @@ class RerunRecorder(Recorder):
                 columns.append(
                     rrb.Spatial3DView(
                         origin=r.root,
-                        contents=[f"{r.root}/car/**", f"{r.root}/path"],
+                        contents=[
+                            f"{r.root}/car/**",
+                            f"{r.root}/path",
+                            f"{r.root}/scene/**",
+                            f"{r.root}/predicted_path",
+                        ],
                         name="car",
                         line_grid=rrb.LineGrid3D(visible=True, spacing=1.0),
                         eye_controls=rrb.EyeControls3D(

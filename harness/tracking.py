@@ -19,7 +19,8 @@ Everything is recorded: the rollout (states, inputs, pose) under ``name``, and p
 plot ``{name}/tracking/<state>`` with the reference, the actual state and the model's prediction
 ``Np`` steps ahead drawn at the time it predicts; the whole predicted horizon at every step is
 logged columnar under ``{name}/horizon/<state>`` ((T, Np): column i is the prediction i + 1
-steps ahead).
+steps ahead), and drawn as a path ahead of the car in the 3D view (``{name}/predicted_path``,
+:func:`predicted_path`). Tracking runs come first in the recording's tabs: they are the result.
 """
 
 from __future__ import annotations
@@ -59,11 +60,13 @@ def track(
     recorder: Recorder,
     figure_path: Path | None = None,
     arrays_path: Path | None = None,
+    tab_priority: int = 1,
 ) -> tuple[dict[str, Any], TrackingTrajectory]:
     """Track ``reference`` ((T, 3) states at plant.dt) from rest-or-rolling at its first speed.
 
     ``figure_path``: the tracking figure; ``arrays_path``: the run as ``.npz`` (see
-    :func:`save_run`), which a sweep's report overlays across learners.
+    :func:`save_run`), which a sweep's report overlays across learners; ``tab_priority``: where
+    its tab goes in the recording (see :meth:`Recorder.rollout`; tracking comes before data).
     """
     reference = np.asarray(reference, dtype=float)
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
@@ -94,7 +97,7 @@ def track(
     metrics = tracking_metrics(run, plant.dt, sum(info.fallback for info in infos))
     metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
-    _record(recorder, name, run, plant.dt)
+    _record(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)
     if arrays_path is not None:
@@ -149,7 +152,9 @@ def tracking_metrics(run: TrackingTrajectory, dt: float, solver_failures: int) -
     }
 
 
-def _record(recorder: Recorder, name: str, run: TrackingTrajectory, dt: float) -> None:
+def _record(
+    recorder: Recorder, name: str, run: TrackingTrajectory, dt: float, priority: int
+) -> None:
     poses = run.poses if np.all(np.isfinite(run.poses)) else None
     solve_ms = np.append(run.solve_time_s, np.nan) * 1e3
     recorder.rollout(
@@ -159,8 +164,11 @@ def _record(recorder: Recorder, name: str, run: TrackingTrajectory, dt: float) -
         run.inputs,
         poses,
         extra={"solve_time_ms": solve_ms, "error": run.states - run.reference},
+        priority=priority,
     )
     horizon = run.predicted.shape[1]
+    if poses is not None and horizon:
+        recorder.path_ahead(name, run.time_s, predicted_path(run, dt))
     for i, state in enumerate(STATE_NAMES):
         path = f"{name}/tracking/{state}"
         recorder.series(
@@ -171,6 +179,26 @@ def _record(recorder: Recorder, name: str, run: TrackingTrajectory, dt: float) -
             ahead = run.time_s + horizon * dt
             recorder.series(path, ahead, {f"predicted_{horizon}_ahead": run.predicted[:, -1, i]})
             recorder.series(f"{name}/horizon/{state}", run.time_s, {"ahead": run.predicted[..., i]})
+
+
+def predicted_path(run: TrackingTrajectory, dt: float) -> np.ndarray:
+    """(T, Np + 1, 2) world X, Y of the path the controller predicted at each step: its
+    predicted (vx, vy, yaw rate) integrated from the car's pose then (NaN after the last step).
+
+    Step i moves with the state at its start (the measured one first, then the predictions),
+    as the plant's pose does to first order.
+    """
+    start = run.states[:, None, :]
+    moving = np.concatenate([start, run.predicted[:, :-1]], axis=1)  # (T, Np, 3)
+    vx, vy, rate = moving[..., 0], moving[..., 1], moving[..., 2]
+    heading = run.poses[:, 2:3] + dt * np.concatenate(
+        [np.zeros_like(rate[:, :1]), np.cumsum(rate[:, :-1], axis=1)], axis=1
+    )
+    step_x = dt * (vx * np.cos(heading) - vy * np.sin(heading))
+    step_y = dt * (vx * np.sin(heading) + vy * np.cos(heading))
+    x = run.poses[:, 0:1] + np.concatenate([np.zeros_like(vx[:, :1]), np.cumsum(step_x, 1)], 1)
+    y = run.poses[:, 1:2] + np.concatenate([np.zeros_like(vy[:, :1]), np.cumsum(step_y, 1)], 1)
+    return np.stack([x, y], axis=-1)
 
 
 _UNITS = {"vx": "m/s", "vy": "m/s", "yaw_rate": "rad/s", "steer_wheel_deg": "deg"}

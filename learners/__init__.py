@@ -6,7 +6,8 @@ ones (EDMD, Deep EDMD) also follow :class:`learners.base.KoopmanLearner` (``A_``
 ``lift``, ``normalizer_``) for the MPC. EDMD's observables are a dictionary
 (:mod:`learners.dictionaries`): thin-plate RBFs (the paper's EDMD) or random ELM units
 (ELM-EDMD). ``learners.load(path)`` reads any saved learner. Configs:
-``conf/learner/{edmd,elm_edmd,dnn,deep_edmd}.yaml``.
+``conf/learner/*.yaml``; the bilinear ones (:mod:`learners.bilinear`,
+:mod:`learners.bilinear_deep_edmd`) let the input multiply the lifted state.
 """
 
 from learners.base import KoopmanLearner, Learner, load

@@ -31,7 +31,8 @@ rate 0.05-0.11 rad/s). The config's 100 centres and ridge 1e-4 come from that gr
 
 The model is not lifted-linear: an MPC that reads only ``A_`` and ``B_`` (the harness's
 :class:`~harness.interfaces.LiftedModel`) would ignore ``H_``. It satisfies
-:class:`~harness.interfaces.BilinearModel` instead, and the pipeline does not track with it.
+:class:`~harness.interfaces.BilinearModel` instead, which DE-MPC linearises along its plan
+(``controllers/linearization.py``).
 """
 
 from __future__ import annotations
@@ -46,7 +47,12 @@ from learners.base import INPUT_DIM, STATE_DIM, check_choice, check_rollout_args
 from learners.dictionaries import Dictionary
 from learners.edmd import EDMD
 
-__all__ = ["BilinearEDMD", "bilinear_rollout"]
+__all__ = [
+    "BilinearEDMD",
+    "bilinear_matrices",
+    "bilinear_regression_rows",
+    "bilinear_rollout",
+]
 
 
 def bilinear_rollout(
@@ -80,6 +86,39 @@ def bilinear_rollout(
 
 
 RIDGE_PRIORS = ("identity", "zero")
+
+
+def bilinear_regression_rows(
+    z: np.ndarray,
+    v: np.ndarray,
+    z_next: np.ndarray,
+    v0: np.ndarray,
+    varying: np.ndarray,
+    ridge_prior: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Regressors [z; v; vbar_1 z[varying]; ..; vbar_m z[varying]] and targets z_{k+1} (or
+    z_{k+1} - z_k when the ridge shrinks toward the identity) of one-step pairs."""
+    vbar = v - v0
+    moving = z[:, varying]
+    w = np.hstack([z, v, *(vbar[:, j : j + 1] * moving for j in range(v.shape[1]))])
+    return w, z_next - z if ridge_prior == "identity" else z_next
+
+
+def bilinear_matrices(
+    theta: np.ndarray, m: int, varying: np.ndarray, ridge_prior: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A (N, N), B (N, m), H (m, N, N) from Theta^T (N, regressors) of
+    :func:`bilinear_regression_rows` (H_j is zero on the coordinates not in ``varying``)."""
+    size = theta.shape[0]
+    a = np.ascontiguousarray(theta[:, :size])
+    if ridge_prior == "identity":
+        a += np.eye(size)
+    b = np.ascontiguousarray(theta[:, size : size + m])
+    h = np.zeros((m, size, size))
+    columns = theta[:, size + m :].reshape(size, m, len(varying))
+    for j in range(m):
+        h[j][:, varying] = columns[:, j]
+    return a, b, h
 
 
 class BilinearEDMD(EDMD):
@@ -141,23 +180,13 @@ class BilinearEDMD(EDMD):
         self, z: np.ndarray, v: np.ndarray, z_next: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """[z; v; vbar_1 z'; ..; vbar_m z'] -> z_{k+1} (or z_{k+1} - z_k toward the identity)."""
-        vbar = v - self.v0_
-        varying = z[:, self._varying(z.shape[1])]
-        w = np.hstack([z, v, *(vbar[:, j : j + 1] * varying for j in range(v.shape[1]))])
-        return w, z_next - z if self.ridge_prior == "identity" else z_next
+        varying = self._varying(z.shape[1])
+        return bilinear_regression_rows(z, v, z_next, self.v0_, varying, self.ridge_prior)
 
     def _set_matrices(self, theta: np.ndarray) -> None:
-        size = theta.shape[0]
         m = self.normalizer_.input_min.shape[0]
-        varying = self._varying(size)
-        self.A_ = np.ascontiguousarray(theta[:, :size])
-        if self.ridge_prior == "identity":
-            self.A_ += np.eye(size)
-        self.B_ = np.ascontiguousarray(theta[:, size : size + m])
-        self.H_ = np.zeros((m, size, size))
-        columns = theta[:, size + m :].reshape(size, m, len(varying))
-        for j in range(m):
-            self.H_[j][:, varying] = columns[:, j]
+        varying = self._varying(theta.shape[0])
+        self.A_, self.B_, self.H_ = bilinear_matrices(theta, m, varying, self.ridge_prior)
 
     def _varying(self, size: int) -> np.ndarray:
         """Indices of the ``size`` lifted coordinates the input multiplies: all but the 1."""

@@ -390,3 +390,55 @@ def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_core
     assert default_threads() == 1
     monkeypatch.delenv("OMP_NUM_THREADS")
     assert default_threads() == len(os.sched_getaffinity(0))
+
+
+def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(
+    data: dict, tmp_path: Path
+) -> None:
+    """The same training as Deep EDMD (same network bit for bit), then [A B H] solving the
+    normal equations of the bilinear regression on the lifted data; saved and loaded whole."""
+    from harness.interfaces import BilinearModel
+    from learners.bilinear import bilinear_regression_rows
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD
+
+    args = (data["train"], data["validation"], data["normalizer"])
+    shape = {"lifted_dim": 4, "encoder_hidden": [16], "decoder_hidden": [16], "horizon": 8}
+    training = {
+        "max_steps": 30,
+        "batch_size": 16,
+        "lr": 3e-3,
+        "eval_every_steps": 10,
+        "progress": False,
+    }
+    plain = DeepEDMD(**shape, training=training).fit(*args)
+    model = BilinearDeepEDMD(**shape, training=training, ridge_prior="zero", bilinear_ridge=0.0)
+    model.fit(*args)
+    np.testing.assert_array_equal(plain.params_.data, model.params_.data)
+    assert isinstance(model, BilinearModel) and model.H_.shape == (2, 7, 7)
+    rows = [
+        bilinear_regression_rows(
+            model.lift(e.states)[:-1],
+            data["normalizer"].inputs(e.inputs)[:-1],
+            model.lift(e.states)[1:],
+            model.v0_,
+            np.arange(7),
+            "zero",
+        )
+        for e in data["train"]
+    ]
+    w, y = np.vstack([r[0] for r in rows]), np.vstack([r[1] for r in rows])
+    theta = np.hstack([model.A_, model.B_, *(model.H_[j] for j in range(2))]).T
+    assert np.linalg.norm(w.T @ (y - w @ theta)) / np.linalg.norm(w.T @ y) < 1e-6
+    # predictions are the bilinear rollout read out by C z, and survive the model file
+    episode = data["validation"][0]
+    loaded = load_learner(model.save(tmp_path / "bilinear_deep.pt"))
+    np.testing.assert_array_equal(loaded.H_, model.H_)
+    np.testing.assert_allclose(
+        loaded.predict(episode.states[0], episode.inputs[:-1]),
+        model.predict(episode.states[0], episode.inputs[:-1]),
+        rtol=0,
+        atol=1e-9,
+    )
+    check_same_learner(loaded, model, "bilinear_deep.pt", "bilinear_deep_edmd")
+    with pytest.raises(ValueError, match=r"learner\.refit_koopman_lstsq must be false"):
+        BilinearDeepEDMD(refit_koopman_lstsq=True)

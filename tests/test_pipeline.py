@@ -211,3 +211,26 @@ def test_generalization_evaluates_the_model_on_other_plants_at_every_horizon(
         assert (
             tmp_path / "general" / "generalization" / plant / f"prediction_{episode}.npz"
         ).exists()
+
+
+def test_the_lane_change_is_judged_on_its_course(edmd_run) -> None:
+    """``tracking.references.double_lane_change.path``: where the car went, against the cones
+    of the ISO 3888-1 course; the top view and the course's arrays beside it."""
+    tmp, run_dir, _ = edmd_run
+    out = tmp / "course"
+    metrics = run_main(
+        tmp,
+        out,
+        "learner=edmd",
+        f"task.model_path={run_dir}/model_edmd.pt",
+        "+reference@task.references.lane_change=double_lane_change",  # TINY removed the default
+    )
+    run = metrics["tracking"]["references"]["lane_change"]
+    path = run["path"]
+    assert path["cones"] == 50 and 0 <= path["cones_hit"] <= 50
+    assert path["passed"] == (path["reached_exit"] and path["cones_hit"] == 0)
+    assert path["max_lateral_deviation_m"] >= path["rms_lateral_deviation_m"] >= 0
+    assert "path" not in metrics["tracking"]["references"][metrics["tracking"]["reference"]]
+    assert (out / "course_lane_change.png").stat().st_size > 10_000
+    arrays = load_arrays(out / "course_lane_change.npz")
+    assert arrays["cones"].shape == (50, 2)

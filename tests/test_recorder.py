@@ -338,3 +338,40 @@ def test_custom_names_and_escaping(tmp_path: Path) -> None:
     entities = {c.entity_path for c in _chunks(path)}
     assert {"/sweep/run\\ 1/state/u", "/sweep/run\\ 1/state/v"} <= entities
     assert "/sweep/run\\ 1/input/delta" in entities
+
+
+def test_a_course_and_the_path_ahead_are_drawn_in_the_3d_view(tmp_path: Path) -> None:
+    """Static cones and lane lines, and a predicted path that changes at every sample."""
+    d = _rollout_data(50)
+    ahead = d["poses"][:, None, :2] + np.arange(11)[None, :, None] * 0.5  # (T, 11, 2)
+    ahead[-1] = np.nan  # the last sample has no prediction: skipped
+    path = tmp_path / "course.rrd"
+    with RerunRecorder(path) as rec:
+        rec.rollout("lane_change", d["time_s"], d["states"], d["inputs"], poses=d["poses"])
+        rec.scene("lane_change", "cones", points=np.array([[1.0, 2.0], [3.0, 4.0]]))
+        rec.scene("lane_change", "lanes", strips=[np.array([[0.0, 1.0], [10.0, 1.0]])])
+        rec.path_ahead("lane_change", d["time_s"], ahead)
+        with pytest.raises(ValueError, match="paths must be"):
+            rec.path_ahead("lane_change", d["time_s"], ahead[:, :, :1])
+    chunks = _chunks(path)
+    cones = np.asarray(_static(chunks, "/lane_change/scene/cones", "Points3D:positions"))
+    np.testing.assert_allclose(cones[:, :2], [[1.0, 2.0], [3.0, 4.0]])
+    lanes = _static(chunks, "/lane_change/scene/lanes", "LineStrips3D:strips")
+    np.testing.assert_allclose(np.asarray(lanes[0])[:, :2], [[0.0, 1.0], [10.0, 1.0]])
+    _, strips, _ = _temporal(chunks, "/lane_change/predicted_path", "LineStrips3D:strips")
+    assert len(strips) == 49  # one path per sample with a prediction
+    first = np.asarray(strips.to_pylist()[0][0])
+    np.testing.assert_allclose(first[:, :2], ahead[0], rtol=1e-6)
+
+
+def test_tabs_follow_priority_then_logging_order(tmp_path: Path) -> None:
+    """The recording opens on its result: higher priority first, ties in logged order."""
+    d = _rollout_data(20)
+    path = tmp_path / "order.rrd"
+    with RerunRecorder(path) as rec:
+        for name, priority in (("data", 0), ("test_drive", 1), ("lane_change", 2), ("more", 0)):
+            rec.rollout(name, d["time_s"], d["states"], d["inputs"], priority=priority)
+        blueprint = rec.blueprint()
+    assert blueprint is not None and blueprint.root_container is not None
+    tabs = [tab.name for tab in blueprint.root_container.contents]
+    assert tabs == ["lane_change", "test_drive", "data", "more"]

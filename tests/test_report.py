@@ -12,7 +12,7 @@ import pytest
 
 from harness.report import Run, read_runs, report
 from harness.report.figures import loss_figure
-from harness.report.tables import generalization_table
+from harness.report.tables import course_speed_table, course_table, generalization_table
 from tests.test_pipeline import TINY
 
 
@@ -194,3 +194,48 @@ def test_rows_are_named_by_the_jobs_choices_not_by_their_command_lines(tmp_path:
         ["dnn", "de_mpc_long", "?/?", "lane"],
         ["dnn", "de_mpc_long", "?/?", "alpha"],
     ]
+
+
+def test_the_course_tables_judge_every_run_on_its_course_and_name_the_highest_speed() -> None:
+    """A row per learner × controller × surface × lane-change speed (60 before 100), passes of
+    jobs; the headline: the highest speed passed by every job (the wet road passes less)."""
+
+    def lane_changes(fails_from_kph: int) -> dict:
+        runs = {}
+        for kph in (60, 80, 100):
+            passed = kph < fails_from_kph
+            path = {
+                "passed": passed,
+                "cones_hit": 0 if passed else 4,
+                "reference_speed_mps": kph / 3.6,
+            }
+            runs[f"lane_change_{kph}kph"] = {"rmse": {}, "path": path}
+        runs["test_episode/episode_0001"] = {"rmse": {}}  # no course: not in these tables
+        return {"tracking": {"controllers": {"de_mpc": runs}}}
+
+    jobs = [
+        Run(
+            Path(f"edmd-{seed}"),
+            choices={"learner": "edmd", "plant": "sedan", "controller": "de_mpc"},
+            overrides={"seed": str(seed)},
+            seed=seed,
+            # seed 1 fails at 80 km/h on the dry road: the row's headline is 60
+            metrics={
+                **lane_changes(100 if seed == 0 else 80),
+                "generalization": {"sedan_wet": lane_changes(80)},
+            },
+        )
+        for seed in (0, 1)
+    ]
+    rows = course_table(jobs).rows
+    assert [row[2:4] for row in rows[:3]] == [
+        ["sedan", "lane_change_60kph"],
+        ["sedan", "lane_change_80kph"],
+        ["sedan", "lane_change_100kph"],
+    ]
+    assert rows[1][5:7] == ["1/2", "2 ± 2.8"] and len(rows) == 6
+    headline = {row[2]: row[4:] for row in course_speed_table(jobs).rows}
+    assert headline == {
+        "sedan": ["2", "60", "60, 80, 100"],
+        "sedan_wet": ["2", "60", "60, 80, 100"],
+    }

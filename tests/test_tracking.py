@@ -19,7 +19,7 @@ from harness.references import (
     from_episode,
     lane_offset_m,
 )
-from harness.tracking import track
+from harness.tracking import TrackingTrajectory, predicted_path, track
 from tests.toy_models import ModelPlant, feasible_reference
 from tests.toy_models import toy_linear_model as linear_model
 
@@ -54,7 +54,7 @@ def test_iso_3888_1_at_80_kph_is_driven_at_constant_speed_and_returns_to_its_lan
 
 def test_iso_3888_2_geometry_and_its_demand() -> None:
     assert lane_offset_m("iso3888_2", vehicle_width_m=1.8) == pytest.approx(3.515)
-    slow = double_lane_change(50 / 3.6, "iso3888_2")
+    slow = double_lane_change(45 / 3.6, "iso3888_2")
     fast = double_lane_change(80 / 3.6, "iso3888_2")
     assert np.abs(slow[:, 0] * slow[:, 2]).max() < 0.8 * G < np.abs(fast[:, 0] * fast[:, 2]).max()
 
@@ -165,3 +165,22 @@ def test_a_malformed_reference_is_refused() -> None:
     model = linear_model()
     with pytest.raises(ValueError, match="reference"):
         track(ModelPlant(model), DEMPC(model), np.zeros((10, 2)), name="x", recorder=Recorder())
+
+
+def test_the_predicted_path_integrates_the_predicted_states_from_the_pose() -> None:
+    """Driving at 10 m/s heading +Y, the path ahead is a straight line 0.1 m a step; a yaw rate
+    turns it the way the car turns."""
+    steps, horizon, dt = 3, 5, 0.01
+    states = np.tile([10.0, 0.0, 0.0], (steps, 1))
+    poses = np.tile([1.0, 2.0, np.pi / 2], (steps, 1))
+    predicted = np.tile(states[:, None, :], (1, horizon, 1))
+    run = TrackingTrajectory(
+        np.arange(steps) * dt, states, np.zeros((steps, 2)), poses, states, predicted
+    )
+    path = predicted_path(run, dt)
+    assert path.shape == (steps, horizon + 1, 2)
+    np.testing.assert_allclose(path[0, :, 0], 1.0, atol=1e-12)
+    np.testing.assert_allclose(path[0, :, 1], 2.0 + 0.1 * np.arange(horizon + 1))
+    run.predicted[..., 2] = 1.0  # turning left (counter-clockwise) at 1 rad/s
+    # the first step moves with the measured state (no yaw rate), then the path bends to -X
+    assert np.all(np.diff(predicted_path(run, dt)[0, 1:, 0])[1:] < 0)

@@ -14,11 +14,13 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from harness.data.episode import Episode
+from harness.references.course import Course, Lane, path_metrics, plot_course
 from harness.references.episode import HeldOutEpisode, from_episode
 from harness.references.iso3888 import (
     BicycleParams,
     DoubleLaneChange,
     double_lane_change,
+    double_lane_change_course,
     double_lane_change_path,
     lane_offset_m,
 )
@@ -37,13 +39,29 @@ class Reference(Protocol):
         ...
 
 
+@runtime_checkable
+class CourseReference(Reference, Protocol):
+    """A reference driven on a course (cones, centre line): its runs are also judged by where
+    the car went (``path.*``, a top view) — the pipeline asks the reference, not its name."""
+
+    def course(self) -> Course:
+        """The course in the world frame of a run that starts at the origin heading along X."""
+        ...
+
+
 __all__ = [
     "BicycleParams",
+    "Course",
+    "CourseReference",
     "DoubleLaneChange",
     "HeldOutEpisode",
+    "Lane",
     "Reference",
     "double_lane_change",
+    "double_lane_change_course",
     "double_lane_change_path",
     "from_episode",
     "lane_offset_m",
+    "path_metrics",
+    "plot_course",
 ]

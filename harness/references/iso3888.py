@@ -20,20 +20,26 @@ standard       lane 1    gap 2       lane 3    gap 4       lane 5    lateral off
 =============  ========  ==========  ========  ==========  ========  ======================
 
 The centreline moves sideways along a quintic smootherstep (continuous curvature, so the yaw
-rate has no steps) spanning each gap plus half of the lanes on either side (a driver starts
-turning inside the lane). At 80 km/h the 3888-1 path peaks at 4.9 m/s² (0.5 g), inside the
-sedan's 7.9 m/s²; 3888-2's short gaps need 17 m/s² there, beyond any road car (the test finds
-the highest passable speed): 6.7 m/s² at 50 km/h, 5.4 m/s² at 45 km/h.
+rate has no steps). Each transition is as long as the cones allow: it starts inside lane 1 and
+ends inside lane 3 (and back) at the points, searched in 0.5 m steps up to the middle of each
+lane, where a car body of ``vehicle_length_m`` × ``vehicle_width_m`` (plus 5 cm a side) driven
+exactly on the line still clears every cone (:func:`path_metrics` judges a run the same way).
+For the 4.6 m × 1.8 m sedan, 3888-1's transitions start 7.5 m before lane 1's end and reach
+lane 3's line 9 m inside it: 5.8 m/s² (0.59 g) at 80 km/h, inside the sedan's 7.9 m/s², 9.0 m/s²
+at 100 km/h, beyond it. 3888-2's short gaps (4.0 m, 5.5 m) need 6.4 m/s² at 45 km/h and
+7.9 m/s² at 50 km/h: the test finds the highest passable speed.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from harness.data.episode import Episode
+from harness.references.course import Course, Lane, cones_hit
 
 _GEOMETRY = {
     "iso3888_1": (15.0, 30.0, 25.0, 25.0, 15.0),
@@ -74,26 +80,128 @@ def lane_offset_m(standard: str, vehicle_width_m: float = 1.8) -> float:
     return (1.1 * width + 0.25) / 2 + 1.0 + (width + 1.0) / 2
 
 
+def lane_widths_m(standard: str, vehicle_width_m: float = 1.8) -> tuple[float, float, float]:
+    """Widths of lanes 1, 3 and 5 between the cone lines (ISO 3888-1: 1.1W + 0.25,
+    1.2W + 0.25, 1.3W + 0.25; ISO 3888-2: 1.1W + 0.25, W + 1, 1.3W + 0.25 but at least 3 m)."""
+    w = vehicle_width_m
+    if standard == "iso3888_1":
+        return 1.1 * w + 0.25, 1.2 * w + 0.25, 1.3 * w + 0.25
+    return 1.1 * w + 0.25, w + 1.0, max(1.3 * w + 0.25, 3.0)
+
+
+def double_lane_change_course(
+    standard: str = "iso3888_1",
+    *,
+    vehicle_width_m: float = 1.8,
+    vehicle_length_m: float = 4.6,
+    run_in_m: float = 20.0,
+) -> Course:
+    """The coned lanes 1, 3 and 5 around :func:`double_lane_change_path`'s centre line, each
+    centred on it (lane 3 on the offset line)."""
+    x, y = double_lane_change_path(
+        standard,
+        vehicle_width_m=vehicle_width_m,
+        vehicle_length_m=vehicle_length_m,
+        run_in_m=run_in_m,
+    )
+    return Course(
+        x, y, _lanes(standard, vehicle_width_m, run_in_m), vehicle_length_m, vehicle_width_m
+    )
+
+
+def _lanes(standard: str, width_m: float, run_in_m: float) -> tuple[Lane, ...]:
+    lane1, gap2, lane3, gap4, lane5 = _GEOMETRY[standard]
+    offset = lane_offset_m(standard, width_m)
+    widths = lane_widths_m(standard, width_m)
+    starts = (run_in_m, run_in_m + lane1 + gap2, run_in_m + lane1 + gap2 + lane3 + gap4)
+    return tuple(
+        Lane(name, start, start + length, centre - width / 2, centre + width / 2)
+        for name, start, length, centre, width in zip(
+            ("lane 1", "lane 3", "lane 5"),
+            starts,
+            (lane1, lane3, lane5),
+            (0, offset, 0),
+            widths,
+            strict=True,
+        )
+    )
+
+
 def double_lane_change_path(
     standard: str = "iso3888_1",
     *,
     vehicle_width_m: float = 1.8,
+    vehicle_length_m: float = 4.6,
     run_in_m: float = 20.0,
     run_out_m: float = 30.0,
     step_m: float = 0.05,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Centreline (X, Y) in m through the ISO gates, with straight run-in and run-out."""
+    """Centreline (X, Y) in m through the ISO lanes, with straight run-in and run-out.
+
+    Each transition starts in the middle of lane 1 (ends in the middle of lane 5) and reaches
+    lane 3's offset as far inside lane 3 as the cones allow: the longest transitions (lowest
+    lateral acceleration) along which a body of ``vehicle_length_m`` × ``vehicle_width_m`` plus
+    ``_CLEARANCE_M`` on each side, driven exactly on the line, touches no cone (searched in
+    0.25 m steps from the middle of lane 3 outwards).
+    """
     if standard not in _GEOMETRY:
         raise ValueError(f"standard must be one of {sorted(_GEOMETRY)} (got {standard!r})")
+    outer, inner = _transition_ends_m(standard, vehicle_width_m, vehicle_length_m, run_in_m)
+    return _centreline(standard, vehicle_width_m, run_in_m, run_out_m, step_m, outer, inner)
+
+
+_CLEARANCE_M = 0.05
+
+
+def _centreline(
+    standard: str,
+    width_m: float,
+    run_in_m: float,
+    run_out_m: float,
+    step_m: float,
+    outer: float,
+    inner: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Transitions from ``outer`` m before lane 1's end to ``inner`` m inside lane 3, and back
+    from ``inner`` m before lane 3's end to ``outer`` m inside lane 5."""
     lane1, gap2, lane3, gap4, lane5 = _GEOMETRY[standard]
-    offset = lane_offset_m(standard, vehicle_width_m)
-    start = run_in_m
-    # Transitions: from the middle of one lane to the middle of the next across the gap.
-    out_from, out_to = start + lane1 / 2, start + lane1 + gap2 + lane3 / 2
-    back_from, back_to = out_to, start + lane1 + gap2 + lane3 + gap4 + lane5 / 2
-    x = np.arange(0.0, start + lane1 + gap2 + lane3 + gap4 + lane5 + run_out_m + step_m, step_m)
+    offset = lane_offset_m(standard, width_m)
+    lane3_start = run_in_m + lane1 + gap2
+    lane3_end = lane3_start + lane3
+    out_from, out_to = run_in_m + lane1 - outer, lane3_start + inner
+    back_from, back_to = lane3_end - inner, lane3_end + gap4 + outer
+    x = np.arange(0.0, lane3_end + gap4 + lane5 + run_out_m + step_m, step_m)
     y = offset * (_smootherstep(x, out_from, out_to) - _smootherstep(x, back_from, back_to))
     return x, y
+
+
+@functools.lru_cache(maxsize=64)
+def _transition_ends_m(
+    standard: str, width_m: float, length_m: float, run_in_m: float
+) -> tuple[float, float]:
+    """(outer, inner) of :func:`_centreline`: the longest transitions (at most half of each
+    lane, 0.5 m steps) whose line clears every cone (see :func:`double_lane_change_path`)."""
+    lane1, _, lane3, _, lane5 = _GEOMETRY[standard]
+    lanes = _lanes(standard, width_m, run_in_m)
+
+    def clears(outer: float, inner: float) -> bool:
+        x, y = _centreline(standard, width_m, run_in_m, 0.0, 0.1, outer, inner)
+        poses = np.stack([x, y, np.arctan(np.gradient(y, x))], axis=1)
+        course = Course(x, y, lanes)
+        return not cones_hit(course, poses, length_m, width_m + 2 * _CLEARANCE_M).any()
+
+    best = (0.0, 0.0)
+    outers = np.arange(min(lane1, lane5) / 2, -0.25, -0.5)
+    for inner in np.arange(lane3 / 2, -0.25, -0.5):
+        if inner + outers[0] <= sum(best):
+            break
+        for outer in outers:
+            if inner + outer <= sum(best):
+                break
+            if clears(float(outer), float(inner)):
+                best = (float(outer), float(inner))
+                break
+    return best
 
 
 def double_lane_change(
@@ -102,13 +210,16 @@ def double_lane_change(
     *,
     dt: float = 0.01,
     vehicle_width_m: float = 1.8,
+    vehicle_length_m: float = 4.6,
     sideslip: bool = True,
     bicycle: BicycleParams | None = None,
 ) -> np.ndarray:
     """(T, 3) states (vx, vy, yaw_rate) that drive the ISO double lane change at speed_mps."""
     if not speed_mps > 0:
         raise ValueError(f"speed_mps must be > 0 (got {speed_mps})")
-    x, y = double_lane_change_path(standard, vehicle_width_m=vehicle_width_m)
+    x, y = double_lane_change_path(
+        standard, vehicle_width_m=vehicle_width_m, vehicle_length_m=vehicle_length_m
+    )
     slope = np.gradient(y, x)
     curvature = np.gradient(slope, x) / (1 + slope**2) ** 1.5
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
@@ -121,6 +232,10 @@ def double_lane_change(
 class DoubleLaneChange:
     """The ISO 3888 double lane change at constant ``speed_mps``; the same on every plant.
 
+    ``vehicle_width_m`` sets the lane widths (the standard scales them with the car);
+    ``vehicle_width_m`` × ``vehicle_length_m`` is the body that must clear the cones (the
+    sedan's MJCF body box is 4.6 m × 1.76 m, centred on its pose).
+
     A plain class, not a dataclass: Hydra keeps built objects in a config node, which would turn
     a dataclass back into a config.
     """
@@ -131,13 +246,21 @@ class DoubleLaneChange:
         standard: str = "iso3888_1",
         vehicle_width_m: float = 1.8,
         sideslip: bool = True,
+        vehicle_length_m: float = 4.6,
     ) -> None:
         if not speed_mps > 0:
             raise ValueError(f"speed_mps must be > 0 (got {speed_mps})")
         if standard not in _GEOMETRY:
             raise ValueError(f"standard must be one of {sorted(_GEOMETRY)} (got {standard!r})")
+        for key, value, most in (
+            ("vehicle_width_m", vehicle_width_m, 3.0),
+            ("vehicle_length_m", vehicle_length_m, 12.0),
+        ):
+            if not 0 < value <= most:
+                raise ValueError(f"{key} must be in (0, {most}] m (got {value})")
         self.speed_mps, self.standard = speed_mps, standard
         self.vehicle_width_m, self.sideslip = vehicle_width_m, sideslip
+        self.vehicle_length_m = vehicle_length_m
 
     def label(self, name: str, episodes: Sequence[Episode]) -> str:
         """The config's name alone: the lane change does not depend on the drives."""
@@ -149,7 +272,16 @@ class DoubleLaneChange:
             self.standard,
             dt=dt,
             vehicle_width_m=self.vehicle_width_m,
+            vehicle_length_m=self.vehicle_length_m,
             sideslip=self.sideslip,
+        )
+
+    def course(self) -> Course:
+        """The cones and centre line the states of :meth:`build` drive along (from X = 0)."""
+        return double_lane_change_course(
+            self.standard,
+            vehicle_width_m=self.vehicle_width_m,
+            vehicle_length_m=self.vehicle_length_m,
         )
 
 

@@ -22,12 +22,14 @@ from collections import defaultdict
 from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
 from matplotlib.figure import Figure
 
 from harness.artifacts import load_arrays
 from harness.data.episode import Episode
 from harness.figures import save_figure
 from harness.prediction import plot_prediction
+from harness.references.course import Course, plot_course
 from harness.report.jobs import Run, common_overrides, variant
 from harness.tracking import load_run, plot_tracking
 
@@ -111,6 +113,30 @@ def tracking_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Path]
     return written
 
 
+def course_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Path]:
+    """One top view per course reference (per group): every learner's and controller's path."""
+    written = []
+    for suffix, members in _groups(jobs).items():
+        courses: dict[str, Course] = {}
+        paths: dict[str, dict[str, np.ndarray]] = defaultdict(dict)
+        for learner, job in _lowest_seed_per_learner(members).items():
+            for course_file in sorted((job.path / subdir).glob("course_*.npz")):
+                reference = course_file.stem.removeprefix("course_")
+                try:
+                    courses.setdefault(reference, Course.from_arrays(load_arrays(course_file)))
+                    for run_file in sorted((job.path / subdir).glob(f"tracking_*_{reference}.npz")):
+                        controller = run_file.stem.removeprefix("tracking_")
+                        controller = controller.removesuffix(f"_{reference}")
+                        paths[reference][f"{learner} {controller}"] = load_run(run_file).poses
+                except (ValueError, KeyError) as error:
+                    log.warning("%s: %s; left out of the course figure", course_file, error)
+        for reference, course in sorted(courses.items()):
+            path = out / subdir / f"course_{reference}{suffix}.png"
+            plot_course(course, paths[reference], path, title=f"{reference}{suffix} (top view)")
+            written.append(path)
+    return written
+
+
 def loss_figure(jobs: list[Run], out: Path) -> Path | None:
     """Loss curves of every trained network, a panel per learner, a colour per seed."""
     histories: dict[str, list[tuple[int, dict]]] = defaultdict(list)
@@ -161,5 +187,6 @@ def figures(jobs: list[Run], out: Path) -> list[Path]:
     written = []
     for subdir in sorted(subdirs):
         written += prediction_figures(jobs, out, subdir) + tracking_figures(jobs, out, subdir)
+        written += course_figures(jobs, out, subdir)
     loss = loss_figure(jobs, out)
     return [*written, loss] if loss else written

@@ -7,6 +7,7 @@ Each table is also written as a CSV by :func:`harness.report.report`.
 from __future__ import annotations
 
 import math
+import re
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -331,6 +332,83 @@ def spectrum_table(jobs: list[Run]) -> Table:
     return table
 
 
+def course_table(jobs: list[Run]) -> Table:
+    """Every closed-loop run judged on a course (``path``): learner × controller × surface ×
+    reference, passes out of jobs, cones hit and deviation (``experiment=lane_change``: the
+    ISO 3888-1 lane change at 60, 80 and 100 km/h, dry and wet)."""
+    table = Table(
+        "Lane change judged on its course: passed (no cone hit, exit reached) of jobs; cones "
+        "knocked down by the body; lateral deviation of the car from the centre line (m); "
+        "heading error (rad) and speed (m/s) at the exit",
+        [
+            *("learner", "controller", "surface", "reference", "variant", "passed", "cones hit"),
+            *("max deviation", "rms deviation", "exit heading error", "exit speed"),
+        ],
+    )
+    common = common_overrides(jobs)
+    runs: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
+    for job in jobs:
+        sections = {job.plant: job.metrics or {}, **(_get(job.metrics, "generalization") or {})}
+        for surface, section in sections.items():
+            for controller, reference, metrics in _tracking_runs(
+                section.get("tracking") or {}, job.controller
+            ):
+                if isinstance(metrics.get("path"), Mapping):
+                    key = (job.learner, controller, surface, reference, variant(job, common) or "—")
+                    runs[key].append(metrics["path"])
+    for key, paths in sorted(runs.items(), key=lambda kv: _natural(kv[0])):
+        passed = sum(bool(p.get("passed")) for p in paths)
+        table.rows.append(
+            [*key, f"{passed}/{len(paths)}"]
+            + [
+                _mean_std(p.get(k) for p in paths)
+                for k in (
+                    "cones_hit",
+                    "max_lateral_deviation_m",
+                    "rms_lateral_deviation_m",
+                    "exit_heading_error_rad",
+                    "exit_speed_mps",
+                )
+            ]
+        )
+    return table
+
+
+def course_speed_table(jobs: list[Run]) -> Table:
+    """The headline of the lane-change sweep: per learner, controller and surface, the highest
+    reference speed passed by every job, of the speeds tried."""
+    table = Table(
+        "Highest lane-change speed passed (every job of the row passed it; km/h)",
+        ["learner", "controller", "surface", "variant", "jobs", "highest passed", "speeds tried"],
+    )
+    common = common_overrides(jobs)
+    speeds: dict[tuple[str, ...], dict[float, list[bool]]] = defaultdict(lambda: defaultdict(list))
+    jobs_per_key: dict[tuple[str, ...], set[str]] = defaultdict(set)
+    for job in jobs:
+        sections = {job.plant: job.metrics or {}, **(_get(job.metrics, "generalization") or {})}
+        for surface, section in sections.items():
+            for controller, _, metrics in _tracking_runs(
+                section.get("tracking") or {}, job.controller
+            ):
+                path = metrics.get("path")
+                if isinstance(path, Mapping) and path.get("reference_speed_mps") is not None:
+                    key = (job.learner, controller, surface, variant(job, common) or "—")
+                    kph = round(3.6 * float(path["reference_speed_mps"]))
+                    speeds[key][kph].append(bool(path.get("passed")))
+                    jobs_per_key[key].add(job.name)
+    for key, by_speed in sorted(speeds.items()):
+        passed = [kph for kph, results in by_speed.items() if all(results)]
+        highest = str(max(passed)) if passed else "none"
+        tried = ", ".join(str(kph) for kph in sorted(by_speed))
+        table.rows.append([*key, str(len(jobs_per_key[key])), highest, tried])
+    return table
+
+
+def _natural(key: tuple[str, ...]) -> list[Any]:
+    """Sort ``lane_change_60kph`` before ``lane_change_100kph``."""
+    return [int(p) if p.isdigit() else p for k in key for p in re.split(r"(\d+)", k)]
+
+
 def failures_table(jobs: list[Run]) -> Table:
     table = Table("Jobs that did not finish", ["job", "reason"])
     for job in jobs:
@@ -353,6 +431,8 @@ def tables(runs: list[Run]) -> dict[str, Table]:
         "generalization": generalization_table(finished),
         "step_response": step_response_table(finished),
         "spectrum": spectrum_table(finished),
+        "course": course_table(finished),
+        "course_speed": course_speed_table(finished),
         "training": training_table(finished),
         "failures": failures_table(runs),
     }

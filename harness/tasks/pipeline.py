@@ -36,8 +36,11 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from controllers.config import OwnModelFactory
 from harness import spectrum, step_response, training_report
+from harness.artifacts import save_arrays
 from harness.config import as_object
 from harness.data.collect import prepare
 from harness.data.driver import DriverKnowledge
@@ -47,7 +50,8 @@ from harness.interfaces import LiftedModel, LinearizableModel
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
-from harness.references import Reference
+from harness.references import CourseReference, Reference
+from harness.references.course import path_metrics, plot_course, record_course
 from harness.tracking import track
 from learners.base import Learner, check_same_learner
 from learners.base import load as load_learner
@@ -98,11 +102,13 @@ class Pipeline:
         _check_count("task.prediction_window_steps", prediction_window_steps)
         if not (math.isfinite(prediction_window_s) and prediction_window_s > 0):
             raise ValueError(f"task.prediction_window_s must be > 0 (got {prediction_window_s})")
-        for name, reference in (references or {}).items():
+        # null leaves a reference out (an experiment replacing the default's lane change)
+        references = {k: v for k, v in (references or {}).items() if v is not None}
+        for name, reference in references.items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
         self.window_steps, self.window_s = int(prediction_window_steps), prediction_window_s
-        self.references = dict(references or {})
+        self.references = references
         _check_count("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
 
@@ -232,6 +238,12 @@ class Pipeline:
             name: (reference.label(name, episodes), reference.build(plant.dt, episodes))
             for name, reference in self.references.items()
         }
+        courses = {
+            name: reference.course()
+            for name, reference in self.references.items()
+            if isinstance(reference, CourseReference)
+        }
+        paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
             model = models[controller_name]
@@ -242,20 +254,36 @@ class Pipeline:
             for name, (label, reference) in targets.items():
                 controller = make_controller(model, plant.dt)
                 stem = f"tracking_{controller_name}_{name}"
-                metrics, _ = track(
+                rollout = f"{prefix}tracking/{controller_name}/{label}"
+                metrics, run = track(
                     plant,
                     controller,
                     reference,
-                    name=f"{prefix}tracking/{controller_name}/{label}",
+                    name=rollout,
                     recorder=recorder,
                     figure_path=output_dir / f"{stem}.png",
                     arrays_path=output_dir / f"{stem}.npz",
+                    tab_priority=2 if name in courses else 1,  # the recording opens on a course
                 )
+                if name in courses:
+                    metrics["path"] = {
+                        **path_metrics(courses[name], run.poses, run.states),
+                        "reference_speed_mps": float(reference[0, 0]),
+                    }
+                    record_course(recorder, rollout, courses[name])
+                    paths[name][controller_name] = run.poses
+                    log.info(
+                        "%s%s on the %s course: %s", prefix, controller_name, label, metrics["path"]
+                    )
                 runs[label] = metrics
                 log.info(
                     "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
                 )
             by_controller[controller_name] = runs
+        for name, course in courses.items():
+            save_arrays(output_dir / f"course_{name}.npz", **course.as_arrays())
+            title = f"{self.learner_name}: {name} (top view)"
+            plot_course(course, paths[name], output_dir / f"course_{name}.png", title=title)
         first = next(iter(by_controller.values()))
         if "skipped" in first:
             return {"skipped": first["skipped"], "controllers": by_controller}
