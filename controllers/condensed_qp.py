@@ -259,6 +259,9 @@ class CondensedQP:
     def _ensure_dual(self) -> None:
         """K and P⁻¹Gᵀ exist before the active set runs (built once here: P never changes)."""
 
+    def _ensure_piqp_hessian(self) -> None:
+        """PIQP's Hessian P_V = Tᵀ P T is current (built once here: P never changes)."""
+
     def _solution(self, x: np.ndarray, path: str, iterations: int, status: str) -> QPSolution:
         M = self.m * self.Nc
         return QPSolution(x[:M].reshape(self.Nc, self.m), float(x[M]), path, iterations, status)
@@ -356,6 +359,7 @@ class CondensedQP:
         h_u = self._piqp_h_u.copy()
         h_u[:M] += shift
         h_l[M:] += shift
+        self._ensure_piqp_hessian()
         solver = self._piqp
         if not self._piqp_ready:
             _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
@@ -411,9 +415,9 @@ class TimeVaryingQP(CondensedQP):
 
     e.g. a bilinear or nonlinear model linearised along the previous plan (d_k is what the
     linearisation leaves constant). :meth:`set_model` rebuilds Θ, the Hessian and the
-    unconstrained gain each step; the active set's dual operator K is built only when a step
-    needs it (most steps end at the unconstrained optimum); PIQP receives the new Hessian by
-    ``update``. With A_k = A, B_k = B, d_k = 0 it solves the time-invariant QP (up to rounding).
+    unconstrained gain each step; the active set's dual operator K and PIQP's Hessian are built
+    only when a step needs them (PIQP receives the new Hessian by ``update``). With A_k = A,
+    B_k = B, d_k = 0 it solves the time-invariant QP (up to rounding).
 
     Args:
         C: (n, N) output map; inputs: m. Everything else as :class:`CondensedQP`'s.
@@ -457,6 +461,7 @@ class TimeVaryingQP(CondensedQP):
         self._d = np.zeros((Np, self.N))
         self._gain = np.zeros((M, self.n * Np))
         self._dual_ready = False
+        self._piqp_hessian_ready = True  # _build_piqp built it from the initial P
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
 
@@ -493,8 +498,7 @@ class TimeVaryingQP(CondensedQP):
         if info != 0:  # R > 0 makes the block definite; only a non-finite model gets here
             raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
-        self._P_V = np.asfortranarray(self._T.T @ self.P @ self._T)
-        self._piqp_new_hessian = True
+        self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
         self._dual_ready = False
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
@@ -518,6 +522,12 @@ class TimeVaryingQP(CondensedQP):
     def predict(self, z: np.ndarray, v_prev: np.ndarray, dv: np.ndarray) -> np.ndarray:
         y = self.free_response(z, v_prev) + self.theta @ np.ravel(dv)
         return y.reshape(self.Np, self.n)
+
+    def _ensure_piqp_hessian(self) -> None:
+        if not self._piqp_hessian_ready:
+            self._P_V = np.asfortranarray(self._T.T @ self.P @ self._T)
+            self._piqp_new_hessian = True
+            self._piqp_hessian_ready = True
 
     def _ensure_dual(self) -> None:
         if not self._dual_ready:
