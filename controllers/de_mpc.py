@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 STATES, INPUTS = 3, 2
 # Where a time-varying model is linearised: at every point of the previous plan (exact along
 # the horizon), or at the current state and next input only, held over the horizon (frozen:
-# Θ from one step response; for N = 104 at 60/50 about 10x cheaper, see docs/control.md).
+# Θ from one step response: far cheaper for a large lift at 60/50, see docs/control.md).
 LINEARIZATIONS = ("plan", "frozen")
 
 
