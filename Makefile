@@ -37,6 +37,7 @@ bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxp
 	$(BIN)/python -m bench.collect_throughput
 	$(BIN)/python -m bench.driver_sawtooth
 	$(BIN)/python -m bench.mpc_solve_time
+	$(BIN)/python -m bench.controller_solve_time
 	$(BIN)/python -m bench.training_speed
 
 format: setup  ## format and autofix

@@ -1,19 +1,24 @@
-"""Controllers that act on the plant: the Koopman MPC (DE-MPC) solved with PIQP.
+"""Controllers that act on the plant: the Koopman MPC (DE-MPC) solved with PIQP, time-varying
+for bilinear and linearizable models, and the single-track physics baseline (bicycle_mpc).
 
 A controller is a :class:`harness.interfaces.Controller`: ``reset(reference)`` before a run and
 ``act(x, t) -> (u, StepInfo)`` every control period (physical units in and out). Its config
 builds a checked :class:`ControllerFactory`, which builds the controller on a fitted model.
 """
 
-from controllers.condensed_qp import CondensedQP, QPSolution
-from controllers.config import ControllerFactory, check_controller_config
+from controllers.bicycle_mpc import BicycleMPCConfig
+from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
+from controllers.config import ControllerFactory, OwnModelFactory, check_controller_config
 from controllers.de_mpc import DEMPC, DEMPCConfig
 
 __all__ = [
     "DEMPC",
+    "BicycleMPCConfig",
     "CondensedQP",
     "ControllerFactory",
     "DEMPCConfig",
+    "OwnModelFactory",
     "QPSolution",
+    "TimeVaryingQP",
     "check_controller_config",
 ]

@@ -92,17 +92,35 @@ class CondensedQP:
         active_set: bool = True,
         active_set_max_iter: int = 100,
     ) -> None:
-        self.n, self.N = C.shape
-        self.m = B.shape[1]
-        self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
-        self.active_set, self.active_set_max_iter = active_set, active_set_max_iter
-        self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
-        self.dv_max = np.asarray(dv_max, float)
+        self._configure(C, B.shape[1], Np, Nc, rho, v_min, v_max, dv_max, tol, active_set)
+        self.active_set_max_iter = active_set_max_iter
         self._build_prediction(A, B, C)
         self._build_cost(Q, R)
         self._build_constraints()
+        self._build_dual()
         self._build_piqp(max_iter)
         self._guess = np.zeros(self.rows, dtype=bool)
+
+    def _configure(
+        self,
+        C: np.ndarray,
+        m: int,
+        Np: int,
+        Nc: int,
+        rho: float,
+        v_min: np.ndarray,
+        v_max: np.ndarray,
+        dv_max: np.ndarray,
+        tol: float,
+        active_set: bool,
+    ) -> None:
+        """Sizes and limits: what does not depend on the model's matrices."""
+        self.n, self.N = C.shape
+        self.m = m
+        self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
+        self.active_set = active_set
+        self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
+        self.dv_max = np.asarray(dv_max, float)
 
     # ---- built once per model -------------------------------------------------------------
 
@@ -140,7 +158,7 @@ class CondensedQP:
         self._x_u = np.hstack([-gain @ self.phi_z, -gain @ self.phi_v, gain])
 
     def _build_constraints(self) -> None:
-        """Rows G x <= b (b moves with v_{t-1}), the dual operator K = G P⁻¹ Gᵀ and P⁻¹Gᵀ."""
+        """Rows G x <= b (b moves with v_{t-1}): they depend on the limits, never on the model."""
         m, Nc, M = self.m, self.Nc, self.m * self.Nc
         inv_rate = np.tile(1.0 / self.dv_max, Nc)
         cumulative = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(m))
@@ -153,6 +171,10 @@ class CondensedQP:
         self.G, self.rows, self._M = G, G.shape[0], M
         self._v_min_all, self._v_max_all = np.tile(self.v_min, Nc), np.tile(self.v_max, Nc)
         self._inv_rate, self._cumulative = inv_rate, cumulative
+
+    def _build_dual(self) -> None:
+        """The active set's dual operator K = G P⁻¹ Gᵀ and the rows of P⁻¹Gᵀ."""
+        G, M = self.G, self._M
         p_inv = cho_solve(cho_factor(self.P), np.eye(M + 1))
         self._Zt = np.ascontiguousarray((p_inv @ G.T).T)  # rows of P⁻¹Gᵀ, one per constraint
         self._K = np.ascontiguousarray(G @ p_inv @ G.T)
@@ -186,6 +208,7 @@ class CondensedQP:
         settings.preconditioner_reuse_on_update = True  # P and G never change
         self._piqp = solver
         self._piqp_ready = False
+        self._piqp_new_hessian = False  # a time-varying model's P changes every step
 
     # ---- per step ---------------------------------------------------------------------------
 
@@ -220,6 +243,7 @@ class CondensedQP:
             self._guess[:] = False
             return self._solution(x_u, "unconstrained", 0, "solved")
         if self.active_set:
+            self._ensure_dual()
             found = self._hot_active_set(x_u, r, v_prev)
             if found is not None:
                 x, rows, iterations = found
@@ -231,6 +255,12 @@ class CondensedQP:
             x = np.append(solution.dv.ravel(), solution.slack)
             self._guess = self.residual(x, v_prev) > -10 * self.tol
         return solution
+
+    def _ensure_dual(self) -> None:
+        """K and P⁻¹Gᵀ exist before the active set runs (built once here: P never changes)."""
+
+    def _ensure_piqp_hessian(self) -> None:
+        """PIQP's Hessian P_V = Tᵀ P T is current (built once here: P never changes)."""
 
     def _solution(self, x: np.ndarray, path: str, iterations: int, status: str) -> QPSolution:
         M = self.m * self.Nc
@@ -318,7 +348,7 @@ class CondensedQP:
     def solve_piqp(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
         """PIQP alone (dense), in absolute inputs: the reference path and the last resort."""
         M = self.m * self.Nc
-        e = self.phi_z @ z + self.phi_v @ v_prev - y_ref
+        e = self.free_response(z, v_prev) - y_ref
         c = np.zeros(M + 1)
         c[:M] = 2 * self._theta_q @ e
         # x = T x_V + t0 with t0 = [-E v_prev; 0]: c_V = Tᵀ (c + P t0).
@@ -329,6 +359,7 @@ class CondensedQP:
         h_u = self._piqp_h_u.copy()
         h_u[:M] += shift
         h_l[M:] += shift
+        self._ensure_piqp_hessian()
         solver = self._piqp
         if not self._piqp_ready:
             _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
@@ -342,9 +373,13 @@ class CondensedQP:
                 x_u=self._piqp_x_u,
             )
             self._piqp_ready = True
+        elif self._piqp_new_hessian:
+            _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
+            solver.update(P=self._P_V, c=c_v, h_l=h_l, h_u=h_u)
         else:
             _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
             solver.update(c=c_v, h_l=h_l, h_u=h_u)
+        self._piqp_new_hessian = False
         status = solver.solve()
         iterations = int(solver.result.info.iter)
         if status != piqp.PIQP_SOLVED:
@@ -353,6 +388,10 @@ class CondensedQP:
         x = self._T @ solver.result.x
         x[: self.m] -= v_prev
         return self._solution(x, "piqp", iterations, "solved")
+
+    def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
+        """(n Np,) outputs y_{t+1..t+Np} with the input held at v_prev (ΔV = 0)."""
+        return self.phi_z @ z + self.phi_v @ v_prev
 
     def predict(self, z: np.ndarray, v_prev: np.ndarray, dv: np.ndarray) -> np.ndarray:
         """(Np, n) predicted outputs y_{t+1..t+Np} under the increments dv (Nc, m)."""
@@ -367,6 +406,211 @@ class CondensedQP:
         dv = np.reshape(dv, (self.Nc, self.m))
         tracking = np.einsum("ia,ab,ib->", error, self.Q, error)
         return float(tracking + np.einsum("ia,ab,ib->", dv, self._R, dv) + self.rho * slack**2)
+
+
+class TimeVaryingQP(CondensedQP):
+    """The same QP and solve paths for a model that changes along the horizon and every step::
+
+        z_{k+1} = A_k z_k + B_k v_k + d_k,   y_k = C z_k,   k = 0 .. Np-1 (from z_0 = z_t)
+
+    e.g. a bilinear or nonlinear model linearised along the previous plan (d_k is what the
+    linearisation leaves constant). :meth:`set_model` rebuilds Θ, the Hessian and the
+    unconstrained gain each step; the active set's dual operator K and PIQP's Hessian are built
+    only when a step needs them (PIQP receives the new Hessian by ``update``). With A_k = A,
+    B_k = B, d_k = 0 it solves the time-invariant QP (up to rounding).
+
+    Args:
+        C: (n, N) output map; inputs: m. Everything else as :class:`CondensedQP`'s.
+    """
+
+    def __init__(
+        self,
+        C: np.ndarray,
+        inputs: int,
+        *,
+        Np: int,
+        Nc: int,
+        Q: np.ndarray,
+        R: np.ndarray,
+        rho: float,
+        v_min: np.ndarray,
+        v_max: np.ndarray,
+        dv_max: np.ndarray,
+        tol: float = 1e-6,
+        max_iter: int = 100,
+        active_set: bool = True,
+        active_set_max_iter: int = 100,
+    ) -> None:
+        self._configure(C, inputs, Np, Nc, rho, v_min, v_max, dv_max, tol, active_set)
+        self.active_set_max_iter = active_set_max_iter
+        self.C = np.ascontiguousarray(C, dtype=float)
+        self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
+        self._R_blocks = np.kron(np.eye(Nc), self._R)
+        M = self.m * Nc
+        # Until the first set_model: a model without input effect (P = 2 diag(R, ρ)).
+        self.theta = np.zeros((self.n * Np, M))
+        self.P = np.zeros((M + 1, M + 1))
+        self.P[:M, :M], self.P[M, M] = 2 * self._R_blocks, 2 * self.rho
+        self.P = np.asfortranarray(self.P)
+        self._build_constraints()
+        self._build_piqp(max_iter)
+        self._piqp.settings.preconditioner_reuse_on_update = False  # P changes every step
+        self._guess = np.zeros(self.rows, dtype=bool)
+        self._A = np.zeros((Np, self.N, self.N))
+        self._B = np.zeros((Np, self.N, self.m))
+        self._d = np.zeros((Np, self.N))
+        self._gain = np.zeros((M, self.n * Np))
+        self._dual_ready = False
+        self._piqp_hessian_ready = True  # _build_piqp built it from the initial P
+        self._free_key: tuple[bytes, bytes] | None = None
+        self._free = np.zeros(self.n * Np)
+
+    def set_model(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None = None) -> None:
+        """The model of this step: A (Np, N, N), B (Np, N, m), d (Np, N) (default 0); or one
+        (A (1, N, N), B (1, N, m), d (1, N)) held over the whole horizon (a frozen
+        linearisation: Θ from one step response, far cheaper for a large N and Np)."""
+        Np, N, m, Nc = self.Np, self.N, self.m, self.Nc
+        A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
+        K = A.shape[0] if A.ndim == 3 and A.shape[0] == 1 else Np
+        d = np.zeros((K, N)) if d is None else np.asarray(d, dtype=float)
+        if A.shape != (K, N, N) or B.shape != (K, N, m) or d.shape != (K, N):
+            raise ValueError(
+                f"time-varying model must be A ({Np} or 1, {N}, {N}), B ({K}, {N}, {m}), "
+                f"d ({K}, {N}); got {A.shape}, {B.shape}, {d.shape}"
+            )
+        self._free_key = None
+        if K == 1:
+            self.theta = time_invariant_theta(A[0], B[0], self.C, Np, Nc)
+            A, B, d = (np.broadcast_to(a, (Np, *a.shape[1:])) for a in (A, B, d))
+        else:
+            self.theta = time_varying_theta(A, B, self.C, Nc)
+        self._A, self._B, self._d = A, B, d
+        M = m * Nc
+        q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, self.n, M)).reshape(
+            self.n * Np, M
+        )
+        self._theta_q = np.ascontiguousarray(q_theta.T)
+        P = np.zeros((M + 1, M + 1))
+        P[:M, :M] = 2 * (self.theta.T @ q_theta + self._R_blocks)
+        P[M, M] = 2 * self.rho
+        self.P = np.asfortranarray((P + P.T) / 2)
+        factor, info = dpotrf(self.P[:M, :M], lower=1)
+        if info != 0:  # R > 0 makes the block definite; only a non-finite model gets here
+            raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
+        self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
+        self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
+        self._dual_ready = False
+
+    def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
+        """(n Np,) outputs of the step's model with the input held at v_prev."""
+        key = (np.asarray(z, dtype=float).tobytes(), np.asarray(v_prev, dtype=float).tobytes())
+        if key != self._free_key:  # solve and its PIQP fallback ask for the same one
+            drive = self._B @ v_prev + self._d  # (Np, N)
+            states = np.empty((self.Np, self.N))
+            state = np.asarray(z, dtype=float)
+            for k in range(self.Np):  # each step needs the previous: a short loop of products
+                state = self._A[k] @ state + drive[k]
+                states[k] = state
+            self._free = (states @ self.C.T).ravel()
+            self._free_key = key
+        return self._free
+
+    def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
+        dv = self._gain @ (y_ref - self.free_response(z, v_prev))
+        return np.append(dv, 0.0)
+
+    def predict(self, z: np.ndarray, v_prev: np.ndarray, dv: np.ndarray) -> np.ndarray:
+        y = self.free_response(z, v_prev) + self.theta @ np.ravel(dv)
+        return y.reshape(self.Np, self.n)
+
+    def _ensure_piqp_hessian(self) -> None:
+        if not self._piqp_hessian_ready:
+            self._P_V = np.asfortranarray(self._T.T @ self.P @ self._T)
+            self._piqp_new_hessian = True
+            self._piqp_hessian_ready = True
+
+    def _ensure_dual(self) -> None:
+        if not self._dual_ready:
+            self._build_dual()
+            self._dual_ready = True
+
+    def _build_dual(self) -> None:
+        """K = G P⁻¹ Gᵀ and the rows of G P⁻¹ from the structure of G, every step it is needed.
+
+        Every row of G is a signed sum of three kinds: a = [diag(1/Δv_max), 0] (rates),
+        b = [0, 1] (slack) and c = [L, 0] (cumulative inputs, L block lower-triangular ones):
+        the rows are a − b, −a − b, c, −c, −b. So G P⁻¹ needs only a P⁻¹ (row scaling), b P⁻¹
+        (a row) and c P⁻¹ (block cumulative sums), and K only their products with a, b, c
+        (column scaling, a column, block cumulative sums): no product with G itself, about
+        10x fewer operations than the dense G P⁻¹ Gᵀ at Nc = 50.
+        """
+        M, m, Nc = self._M, self.m, self.Nc
+        factor, info = dpotrf(self.P, lower=1)
+        p_inv = dpotrs(factor, np.eye(M + 1), lower=1)[0] if info == 0 else np.linalg.inv(self.P)
+        rate = self._inv_rate
+        a_p = rate[:, None] * p_inv[:M]  # (M, M+1)
+        b_p = p_inv[M:]  # (1, M+1)
+        c_p = p_inv[:M].reshape(Nc, m, M + 1).cumsum(axis=0).reshape(M, M + 1)
+        self._Zt = np.ascontiguousarray(np.vstack([a_p - b_p, -a_p - b_p, c_p, -c_p, -b_p]))
+        basis = np.vstack([a_p, b_p, c_p])  # (2M+1, M+1) rows of [a; b; c] P⁻¹
+        with_a = basis[:, :M] * rate  # (·)aᵀ
+        with_b = basis[:, M:]  # (·)bᵀ
+        with_c = basis[:, :M].reshape(-1, Nc, m).cumsum(axis=1).reshape(-1, M)
+        pa, pb, pc = slice(0, M), slice(M, M + 1), slice(M + 1, 2 * M + 1)
+        aa, ab, ac = with_a[pa], with_b[pa], with_c[pa]
+        ba, bb, bc = with_a[pb], with_b[pb], with_c[pb]
+        ca, cb, cc = with_a[pc], with_b[pc], with_c[pc]
+        # Row kinds (a - b, -a - b, c, -c, -b) against the same column kinds.
+        upper = [aa - ab - ba + bb, -aa - ab + ba + bb, ac - bc, -ac + bc, -ab + bb]
+        lower = [-aa + ab - ba + bb, aa + ab + ba + bb, -ac - bc, ac + bc, ab + bb]
+        cumulative = [ca - cb, -ca - cb, cc, -cc, -cb]
+        slack = [-ba + bb, ba + bb, -bc, bc, bb]
+        K = np.empty((self.rows, self.rows))
+        edges = [0, M, 2 * M, 3 * M, 4 * M, 4 * M + 1]
+        kinds = [upper, lower, cumulative, [-x for x in cumulative], slack]
+        for i, row in enumerate(kinds):
+            for j, block in enumerate(row):
+                K[edges[i] : edges[i + 1], edges[j] : edges[j + 1]] = block
+        self._K = K
+        self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
+
+
+def time_varying_theta(A: np.ndarray, B: np.ndarray, C: np.ndarray, Nc: int) -> np.ndarray:
+    """Θ (n Np, m Nc): y_i's response to the increment Δv_j of a time-varying model.
+
+    Δv_j holds from step j on, so the state's response S_j obeys S_j(k+1) = A_k S_j(k) + B_k
+    for k >= j (S_j(j) = 0). All Nc responses advance together, one product per step over the
+    increments already applied (a loop over Np of BLAS-3 products: each step needs the last).
+    """
+    Np, N, m = B.shape
+    M = m * Nc
+    response = np.zeros((N, M))
+    history = np.empty((Np, N, M))
+    blocks = response.reshape(N, Nc, m)  # a view: block j is S_j
+    for k in range(Np):
+        active = min(k + 1, Nc)
+        response[:, : m * active] = A[k] @ response[:, : m * active]
+        blocks[:, :active] += B[k][:, None, :]
+        history[k] = response
+    return (C @ history).reshape(Np * C.shape[0], M)
+
+
+def time_invariant_theta(
+    A: np.ndarray, B: np.ndarray, C: np.ndarray, Np: int, Nc: int
+) -> np.ndarray:
+    """Θ (n Np, m Nc) of a time-invariant model: block (i, j) is C S_{i+1-j} for j <= i, with
+    the step responses S_l = Σ_{q<l} A^q B (one N×N by N×m product per step)."""
+    N, m = B.shape
+    steps = np.zeros((Np + 1, C.shape[0], m))  # C S_0 = 0
+    power_b, step = B.copy(), np.zeros((N, m))
+    for length in range(1, Np + 1):
+        step += power_b
+        power_b = A @ power_b
+        steps[length] = C @ step
+    rows, columns = np.arange(Np)[:, None], np.arange(Nc)[None, :]
+    index = np.where(columns <= rows, rows + 1 - columns, 0)  # (Np, Nc) into steps
+    blocks = steps[index]  # (Np, Nc, n, m)
+    return blocks.transpose(0, 2, 1, 3).reshape(Np * C.shape[0], Nc * m)
 
 
 def _check_piqp_shapes(

@@ -8,19 +8,37 @@ trained; the fitted model, which exists only after training, is given to the fac
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from harness.interfaces import Controller, LiftedModel
+from harness.interfaces import Controller, LiftedModel, LinearizableModel
+from learners.base import Learner
 
 
 class ControllerFactory(Protocol):
     """Checked settings that build a controller on a fitted model (``instantiate(cfg)``)."""
 
-    def __call__(self, model: LiftedModel, control_period_s: float | None = None) -> Controller: ...
+    def __call__(
+        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
+    ) -> Controller: ...
+
+
+@runtime_checkable
+class OwnModelFactory(Protocol):
+    """A controller factory that brings its own model instead of the run's learner (the
+    physics baseline): the pipeline fits ``learner()`` on the same training episodes and builds
+    the controller on that."""
+
+    def learner(self) -> Learner:
+        """The unfitted model the controller runs on."""
+        ...
+
+    def __call__(
+        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
+    ) -> Controller: ...
 
 
 def check_controller_config(node: DictConfig) -> ControllerFactory:

@@ -27,15 +27,21 @@ from typing import Any
 
 import numpy as np
 
-from controllers.condensed_qp import CondensedQP
+from controllers.blas import single_threaded
+from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
+from controllers.linearization import BilinearLinearization
 from harness.budget import check_memory
 from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import LiftedModel, StepInfo
+from harness.interfaces import BilinearModel, LiftedModel, LinearizableModel, StepInfo
 from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 
 log = logging.getLogger(__name__)
 
 STATES, INPUTS = 3, 2
+# Where a time-varying model is linearised: at every point of the previous plan (exact along
+# the horizon), or at the current state and next input only, held over the horizon (frozen:
+# Θ from one step response: far cheaper for a large lift at 60/50, see docs/control.md).
+LINEARIZATIONS = ("plan", "frozen")
 
 
 @dataclass(frozen=True)
@@ -65,10 +71,21 @@ class DEMPCConfig:
     tol: float = 1e-6
     max_iter: int = 100
     active_set: bool = True
+    sqp_iterations: int = 1
+    linearization: str = "plan"
 
     def __post_init__(self) -> None:
         _check_types(self)
         _check_horizons(self.Np, self.Nc)
+        if not (float(self.sqp_iterations).is_integer() and 1 <= self.sqp_iterations <= 3):
+            raise ValueError(
+                f"controller.sqp_iterations must be 1, 2 or 3 (got {self.sqp_iterations})"
+            )
+        if self.linearization not in LINEARIZATIONS:
+            raise ValueError(
+                f"controller.linearization must be one of {', '.join(LINEARIZATIONS)} "
+                f"(got {self.linearization!r})"
+            )
         _check_qp_size(int(self.Np), int(self.Nc))
         self.weights()
         _check_positive(
@@ -87,7 +104,9 @@ class DEMPCConfig:
         """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
         return _weight("Q", self.Q, STATES), _weight("R", self.R, INPUTS)
 
-    def __call__(self, model: LiftedModel, control_period_s: float | None = None) -> DEMPC:
+    def __call__(
+        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
+    ) -> DEMPC:
         """DE-MPC on ``model``; ``control_period_s`` (the plant's, when known) must equal dt.
 
         The model predicts one step per dt and the reference is indexed by t / dt: on a plant
@@ -105,15 +124,27 @@ class DEMPC:
     """Koopman MPC with PIQP; ``reset(reference)`` then ``act(x, t)`` every control period.
 
     Settings are a :class:`DEMPCConfig` (checked there); the fitted model is given at run time.
+    What the model is decides the QP: a lifted-linear model's prediction matrices are built once
+    (:class:`CondensedQP`); a bilinear model (:class:`~harness.interfaces.BilinearModel`) or
+    any :class:`~harness.interfaces.LinearizableModel` is linearised each step along the
+    previous plan, shifted by one step and rolled out from the measured state, and solved as a
+    :class:`TimeVaryingQP` (``sqp_iterations`` times, re-linearising along the new plan).
     """
 
-    def __init__(self, model: LiftedModel, config: DEMPCConfig | None = None) -> None:
+    def __init__(
+        self, model: LiftedModel | LinearizableModel, config: DEMPCConfig | None = None
+    ) -> None:
         config = DEMPCConfig() if config is None else config
         self.config = config
         self.model = model
         self.Np, self.Nc, self.dt = int(config.Np), int(config.Nc), float(config.dt)
+        self.sqp_iterations = int(config.sqp_iterations)
         Q, R = config.weights()
-        A, B, C = _check_model(model)
+        self.linearization = _linearization(model)
+        if self.linearization is None:
+            A, B, C = _check_model(model)
+        else:
+            C = _check_linearizable(self.linearization)
         self.normalizer: MinMaxNormalizer = model.normalizer_
         to_v = self.normalizer.inputs
         self.u_min = np.array([config.steer_wheel_min_deg, config.pedal_min])
@@ -128,22 +159,24 @@ class DEMPC:
                 to_v(np.array([0.0, pedal_step * THROTTLE_MAX]))[1] - origin[1],
             ]
         )
-        self.qp = CondensedQP(
-            A,
-            B,
-            C,
-            Np=self.Np,
-            Nc=self.Nc,
-            Q=Q,
-            R=R,
-            rho=config.rho,
-            v_min=to_v(self.u_min),
-            v_max=to_v(self.u_max),
-            dv_max=dv_max,
-            tol=config.tol,
-            max_iter=config.max_iter,
-            active_set=config.active_set,
-        )
+        settings: dict[str, Any] = {
+            "Np": self.Np,
+            "Nc": self.Nc,
+            "Q": Q,
+            "R": R,
+            "rho": config.rho,
+            "v_min": to_v(self.u_min),
+            "v_max": to_v(self.u_max),
+            "dv_max": dv_max,
+            "tol": config.tol,
+            "max_iter": config.max_iter,
+            "active_set": config.active_set,
+        }
+        self.qp: CondensedQP
+        if self.linearization is None:
+            self.qp = CondensedQP(A, B, C, **settings)
+        else:
+            self.qp = TimeVaryingQP(C, INPUTS, **settings)
         self._reference: np.ndarray | None = None
         self._reference_steps = 0
         self._start(None)
@@ -180,7 +213,11 @@ class DEMPC:
         z = np.asarray(self.model.lift(np.asarray(x, dtype=float)), dtype=float)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
         v_prev = self._v_prev
-        solution = self.qp.solve(z, v_prev, y_ref)
+        if self.linearization is None:
+            solution = self.qp.solve(z, v_prev, y_ref)
+        else:
+            with single_threaded():  # small products: one BLAS thread is fastest (blas.py)
+                solution = self._solve_time_varying(self.linearization, z, v_prev, y_ref)
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
             self._plan_step = 1
@@ -204,6 +241,31 @@ class DEMPC:
         )
         return u, info
 
+    def _solve_time_varying(
+        self, model: LinearizableModel, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray
+    ) -> QPSolution:
+        """Linearise along the input guess rolled out from z (or, frozen, at z and the next
+        input only), solve; ``sqp_iterations`` times, each along the plan just found."""
+        assert isinstance(self.qp, TimeVaryingQP)
+        guess = self._input_guess(v_prev)
+        for _ in range(self.sqp_iterations):
+            if self.config.linearization == "frozen":
+                self.qp.set_model(*model.linearize(z[None], guess[:1]))
+            else:
+                self.qp.set_model(*model.linearize(_rollout(model, z, guess), guess))
+            solution = self.qp.solve(z, v_prev, y_ref)
+            if not solution.ok:
+                break
+            guess = _held(v_prev + np.cumsum(solution.dv, axis=0), self.Np)
+        return solution
+
+    def _input_guess(self, v_prev: np.ndarray) -> np.ndarray:
+        """(Np, m) inputs to linearise along: the rest of the previous plan held at its end
+        (v_prev held before the first plan)."""
+        if self._plan is None:
+            return np.repeat(v_prev[None], self.Np, axis=0)
+        return _held(self._plan[min(self._plan_step, self.Nc - 1) :], self.Np)
+
     def _fallback(self, v_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(plan, increments): the rest of the previous plan, held at its end, as the new plan
         (its first row is the move applied); the last input held if there is no plan."""
@@ -213,6 +275,53 @@ class DEMPC:
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
         return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
+
+
+def _rollout(model: LinearizableModel, z: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+    """(K, N): z̄_0 = z, z̄_{k+1} = step(z̄_k, v_k), the points a plan of K inputs passes."""
+    states = np.empty((len(inputs), z.shape[0]))
+    state = z
+    for k in range(len(inputs)):  # each point needs the previous one
+        states[k] = state
+        state = model.step(state, inputs[k])
+    return states
+
+
+def _held(plan: np.ndarray, steps: int) -> np.ndarray:
+    """The first ``steps`` rows of ``plan``, its last row repeated beyond its end."""
+    if len(plan) >= steps:
+        return plan[:steps]
+    return np.vstack([plan, np.repeat(plan[-1:], steps - len(plan), axis=0)])
+
+
+def _linearization(model: LiftedModel | LinearizableModel) -> LinearizableModel | None:
+    """How DE-MPC reads ``model``: None for lifted-linear (one QP for the whole run), else the
+    model to linearise each step. A bilinear model is a ``LiftedModel`` too, so it is asked
+    first: read as linear it would lose its H_."""
+    if isinstance(model, BilinearModel):
+        return BilinearLinearization(model)
+    if isinstance(model, LinearizableModel):
+        return model
+    return None
+
+
+def _check_linearizable(model: LinearizableModel) -> np.ndarray:
+    """C_ of a model to linearise, checked against its lift and its linearisation's shapes."""
+    C = np.asarray(model.C_, dtype=float)
+    z = np.asarray(model.lift(np.asarray(model.normalizer_.state_min, dtype=float)), dtype=float)
+    size = z.shape[0] if z.ndim == 1 else -1
+    if C.shape != (STATES, size) or not np.all(np.isfinite(C)):
+        raise ValueError(f"model.C_ must be finite with shape ({STATES}, {size}), got {C.shape}")
+    v = np.asarray(model.normalizer_.inputs(np.zeros(INPUTS)), dtype=float)
+    A, B, d = model.linearize(z[None], v[None])
+    for name, array, shape in (
+        ("A", A, (1, size, size)),
+        ("B", B, (1, size, INPUTS)),
+        ("d", d, (1, size)),
+    ):
+        if np.shape(array) != shape:
+            raise ValueError(f"model.linearize must return {name} of shape {shape}")
+    return C
 
 
 def _check_types(config: DEMPCConfig) -> None:
@@ -294,7 +403,9 @@ def _check_range(name: str, low: float, high: float, unit: str) -> None:
         )
 
 
-def _check_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _check_model(
+    model: LiftedModel | LinearizableModel,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The contract, checked once: shapes agree and lift returns the lifted dimension."""
     if not isinstance(model, LiftedModel):
         raise ValueError(

@@ -1,6 +1,7 @@
 """The three contracts of the harness, written down once: a plant, a lifted model, a controller.
 
-(:class:`BilinearModel` refines the lifted model: what sets a bilinear one apart from a linear one.)
+(:class:`BilinearModel` refines the lifted model: what sets a bilinear one apart from a linear one;
+:class:`LinearizableModel` is a nonlinear model a time-varying MPC linearises along its plan.)
 
 Everything that steps a car (data collection, characterization, closed-loop tracking) is typed
 against :class:`Plant`; every MPC reads a learner through :class:`LiftedModel`; every rollout
@@ -83,6 +84,33 @@ class BilinearModel(LiftedModel, Protocol):
 
     H_: np.ndarray  # (m, N, N)
     v0_: np.ndarray  # (m,)
+
+
+@runtime_checkable
+class LinearizableModel(Protocol):
+    """A model in lifted coordinates z = lift(x) whose step is nonlinear but differentiable::
+
+        z⁺ = step(z, v),   x_norm = C_ z,   linearised as  z⁺ ≈ A_k z + B_k v + d_k
+
+    what a time-varying MPC needs: ``linearize`` gives, at each point (z̄_k, v̄_k) of a
+    trajectory, the Jacobians A_k = ∂step/∂z, B_k = ∂step/∂v and d_k = step(z̄_k, v̄_k) − A_k z̄_k
+    − B_k v̄_k. Units as :class:`LiftedModel`'s (normalized v).
+    """
+
+    C_: np.ndarray  # (n, N)
+    normalizer_: MinMaxNormalizer
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """z = lift(x) for physical states x (..., n) -> (..., N)."""
+        ...
+
+    def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """z⁺ for lifted states z (..., N) under normalized inputs v (..., m)."""
+        ...
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A (K, N, N), B (K, N, m), d (K, N)) at the K points z (K, N), v (K, m)."""
+        ...
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,8 @@ rate 0.05-0.11 rad/s). The config's 100 centres and ridge 1e-4 come from that gr
 
 The model is not lifted-linear: an MPC that reads only ``A_`` and ``B_`` (the harness's
 :class:`~harness.interfaces.LiftedModel`) would ignore ``H_``. It satisfies
-:class:`~harness.interfaces.BilinearModel` instead, and the pipeline does not track with it.
+:class:`~harness.interfaces.BilinearModel` instead, which DE-MPC linearises along its plan
+(``controllers/linearization.py``).
 """
 
 from __future__ import annotations

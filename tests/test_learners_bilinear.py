@@ -11,6 +11,8 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import learners
+from controllers import DEMPC, TimeVaryingQP
+from controllers.linearization import BilinearLinearization
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.interfaces import BilinearModel, LiftedModel
 from harness.paths import CONF_DIR
@@ -138,15 +140,19 @@ def test_save_then_load_keeps_h_and_the_predictions(tmp_path: Path) -> None:
 
 def test_a_bilinear_model_is_never_taken_for_a_lifted_linear_one() -> None:
     """It has A_, B_, C_, lift and normalizer_ (so LiftedModel's runtime check passes), and
-    DE-MPC would read A_, B_ and drop H_: the pipeline asks the model what it is."""
+    a DE-MPC reading only A_, B_ would drop H_: the controller asks the model what it is and
+    linearises a bilinear one along its plan (the pipeline tracks both)."""
     episodes = bilinear_episodes(count=2)
     bilinear = BilinearEDMD(ThinPlateRBF(num_centers=0)).fit(episodes, [], NORMALIZER)
     linear = EDMD(ThinPlateRBF(num_centers=0)).fit(episodes, [], NORMALIZER)
     assert isinstance(bilinear, LiftedModel) and isinstance(bilinear, BilinearModel)
     assert isinstance(linear, LiftedModel) and not isinstance(linear, BilinearModel)
-    reason = _not_lifted_linear(bilinear)
-    assert reason is not None and "H_" in reason
-    assert _not_lifted_linear(linear) is None
+    assert _not_lifted_linear(bilinear) is None and _not_lifted_linear(linear) is None
+    controller = DEMPC(bilinear)
+    assert isinstance(controller.qp, TimeVaryingQP)
+    assert isinstance(controller.linearization, BilinearLinearization)
+    np.testing.assert_array_equal(controller.linearization.H, bilinear.H_)  # H_ is read
+    assert not isinstance(DEMPC(linear).qp, TimeVaryingQP)
 
 
 def test_the_config_builds_it_and_bad_values_fail_in_one_line() -> None:

@@ -7,13 +7,14 @@ closed forms.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from controllers.lifted_linear import LiftedLinearModel
 from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import STATE_NAMES
+from harness.interfaces import STATE_NAMES, BilinearModel, LiftedModel
 
 
 def constant_feature(x_norm: np.ndarray) -> np.ndarray:
@@ -41,7 +42,47 @@ def toy_linear_model() -> LiftedLinearModel:
     return LiftedLinearModel(A, B, normalizer, constant_feature)
 
 
-def feasible_reference(model: LiftedLinearModel, steps: int = 600) -> np.ndarray:
+@dataclass
+class ToyBilinearModel:
+    """The toy linear system plus a steering gain that grows with speed: a ``BilinearModel``.
+
+    z⁺ = A z + B v + Σⱼ (vⱼ − v0ⱼ) Hⱼ z with H₀ feeding vx_norm · steering into vy and the yaw
+    rate (the lateral gain doubles from standstill to 40 m/s); H₁ = 0.
+    """
+
+    A_: np.ndarray
+    B_: np.ndarray
+    H_: np.ndarray
+    normalizer_: MinMaxNormalizer
+    C_: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.C_ = np.hstack([np.eye(3), np.zeros((3, self.A_.shape[0] - 3))])
+
+    @property
+    def v0_(self) -> np.ndarray:
+        return self.normalizer_.inputs(np.zeros(2))
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        return np.concatenate([self.normalizer_.states(x), constant_feature(x)], axis=-1)
+
+
+def toy_bilinear_model() -> ToyBilinearModel:
+    linear = toy_linear_model()
+    H = np.zeros((2, 4, 4))
+    H[0, 1, 0], H[0, 2, 0] = 0.02, 0.03  # ∂(vy, r)⁺/∂steer grows with vx_norm
+    return ToyBilinearModel(linear.A_, linear.B_, H, linear.normalizer_)
+
+
+def lifted_step(model: LiftedModel, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """One step of a lifted-linear or bilinear model."""
+    z_next = model.A_ @ z + model.B_ @ v
+    if isinstance(model, BilinearModel):
+        z_next = z_next + np.einsum("j,jab,b->a", v - model.v0_, model.H_, z)
+    return z_next
+
+
+def feasible_reference(model: LiftedModel, steps: int = 600) -> np.ndarray:
     """(steps, 3) states the model itself reaches from (20 m/s, 0, 0) under slow inputs."""
     plant = ModelPlant(model, x0=np.array([20.0, 0.0, 0.0]))
     t = np.arange(steps) * plant.dt
@@ -60,7 +101,7 @@ class ModelPlant:
 
     dt = 0.01
 
-    def __init__(self, model: LiftedLinearModel, x0: np.ndarray | None = None) -> None:
+    def __init__(self, model: LiftedModel, x0: np.ndarray | None = None) -> None:
         self.model = model
         self.x0 = np.zeros(3) if x0 is None else np.asarray(x0, dtype=float)
         self.reset()
@@ -76,7 +117,7 @@ class ModelPlant:
 
     def step(self, u: np.ndarray) -> np.ndarray:
         vx, vy, yaw_rate = self._state()
-        self._z = self.model.A_ @ self._z + self.model.B_ @ self.model.normalizer_.inputs(u)
+        self._z = lifted_step(self.model, self._z, self.model.normalizer_.inputs(u))
         # Pose (X, Y, yaw) by planar kinematics, for display only.
         yaw = self._pose[2]
         self._pose = self._pose + self.dt * np.array(

@@ -12,7 +12,8 @@ Sections written to ``metrics.json``:
   against the plant at 0.3 s and 1.5 s (see ``harness/step_response.py``);
 - ``spectrum``: the eigenvalues of a Koopman model's state matrices and the modes outside the
   unit circle, named (see ``harness/spectrum.py``); a bilinear model is not tracked (below);
-- ``tracking``: DE-MPC on the plant (Koopman learners only). The top-level keys
+- ``tracking``: DE-MPC on the plant (lifted-linear, bilinear and linearizable learners; the
+  others report ``tracking.skipped``). The top-level keys
   (``rmse``, ``solve_time_ms``, ``deadline_misses``, ``solver_failures``) are the paper's
   experiment, tracking the first reference (the first test episode); ``tracking.references``
   holds every reference of ``task.references`` (``conf/reference/``), e.g. the ISO 3888 double
@@ -37,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.config import OwnModelFactory
 from harness import spectrum, step_response, training_report
 from harness.artifacts import save_arrays
 from harness.config import as_object
@@ -44,7 +46,7 @@ from harness.data.collect import prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
-from harness.interfaces import BilinearModel, LiftedModel
+from harness.interfaces import LiftedModel, LinearizableModel
 from harness.plant import Sedan
 from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
@@ -140,12 +142,13 @@ class Pipeline:
                 output_dir=output_dir,
             )
             sections["robustness"] = _one_learner(repeated, self.learner_name)
-        tracking = self._track(learner, plant, dataset.test, recorder, output_dir)
+        models = self._controller_models(learner, dataset)
+        tracking = self._track(models, learner, plant, dataset.test, recorder, output_dir)
         if tracking is not None:
             sections["tracking"] = tracking
         if self.other_plants:
             sections["generalization"] = {
-                name: self._generalize(name, other, learner, dataset, recorder, output_dir)
+                name: self._generalize(name, other, models, learner, dataset, recorder, output_dir)
                 for name, other in self.other_plants.items()
             }
         return sections
@@ -197,8 +200,27 @@ class Pipeline:
         )
         return _one_learner(predictions, self.learner_name)
 
+    def _controller_models(self, learner: Learner, dataset: Dataset) -> dict[str, Learner | str]:
+        """The model each controller runs on: the run's learner, or, for a controller that
+        brings its own (``OwnModelFactory``: the physics baseline), that model fitted on the
+        same training episodes; where that fit refuses the data (a tiny dataset), the reason,
+        reported as the controller's ``skipped`` instead of failing the run."""
+        models: dict[str, Learner | str] = {}
+        for name, make in self.controllers.items():
+            if not isinstance(make, OwnModelFactory):
+                models[name] = learner
+                continue
+            own = make.learner()
+            try:
+                models[name] = own.fit(dataset.train, dataset.validation, dataset.normalizer)
+            except ValueError as error:
+                log.warning("%s not tracked: %s", name, error)
+                models[name] = f"{name} could not identify its {own.name} model: {error}"
+        return models
+
     def _track(
         self,
+        models: Mapping[str, Learner | str],
         learner: Learner,
         plant: Sedan,
         episodes: Sequence[Episode],
@@ -225,9 +247,13 @@ class Pipeline:
         paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
+            model = models[controller_name]
+            if isinstance(model, str):
+                by_controller[controller_name] = {"skipped": model}
+                continue
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
-                controller = make_controller(learner, plant.dt)
+                controller = make_controller(model, plant.dt)
                 stem = f"tracking_{controller_name}_{name}"
                 rollout = f"{prefix}tracking/{controller_name}/{label}"
                 metrics, run = track(
@@ -260,6 +286,8 @@ class Pipeline:
             title = f"{self.learner_name}: {name} (top view)"
             plot_course(course, paths[name], output_dir / f"course_{name}.png", title=title)
         first = next(iter(by_controller.values()))
+        if "skipped" in first:
+            return {"skipped": first["skipped"], "controllers": by_controller}
         return {
             **next(iter(first.values())),
             "reference": next(iter(first)),
@@ -306,6 +334,7 @@ class Pipeline:
         self,
         name: str,
         plant: Sedan,
+        models: Mapping[str, Learner | str],
         learner: Learner,
         dataset: Dataset,
         recorder: Recorder,
@@ -317,7 +346,7 @@ class Pipeline:
         directory.mkdir(parents=True, exist_ok=True)
         prefix = f"generalization/{name}/"
         result = {"prediction": self._predict(learner, episodes, recorder, directory, prefix)}
-        tracking = self._track(learner, plant, episodes, recorder, directory, prefix)
+        tracking = self._track(models, learner, plant, episodes, recorder, directory, prefix)
         if tracking is not None:
             result["tracking"] = tracking
         return result
@@ -344,12 +373,10 @@ def check_training_data(dataset: Dataset) -> None:
 
 def _not_lifted_linear(learner: Learner) -> str | None:
     """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
-    :class:`~harness.interfaces.LiftedModel`'s ``A_`` and ``B_``, and a bilinear model has both
-    but would lose its ``H_`` there."""
-    if isinstance(learner, BilinearModel):
-        return "is bilinear (z+ = A z + B v + sum_j vbar_j H_j z); DE-MPC would ignore its H_"
-    if not isinstance(learner, LiftedModel):
-        return "is not a lifted-linear model"
+    :class:`~harness.interfaces.LiftedModel` (a bilinear one is linearised along its plan) or
+    a :class:`~harness.interfaces.LinearizableModel`."""
+    if not isinstance(learner, LiftedModel | LinearizableModel):
+        return "is not a lifted-linear model (nor bilinear, nor linearizable)"
     return None
 
 

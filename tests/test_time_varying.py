@@ -1,0 +1,259 @@
+"""The time-varying condensed QP: prediction matrices of a model that changes along the horizon,
+the same answers as the time-invariant QP when it does not change, the bilinear linearisation,
+and DE-MPC closing the loop on bilinear models."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from controllers import DEMPC, DEMPCConfig
+from controllers.condensed_qp import CondensedQP, TimeVaryingQP
+from controllers.lifted_linear import LiftedLinearModel
+from controllers.linearization import BilinearLinearization
+from harness.data.episode import MinMaxNormalizer
+from harness.recorder import Recorder
+from harness.tracking import track
+from tests.toy_models import (
+    ModelPlant,
+    constant_feature,
+    feasible_reference,
+    toy_bilinear_model,
+    toy_linear_model,
+)
+from tests.toy_models import toy_linear_model as linear_model
+
+SETTINGS = {
+    "Np": 20,
+    "Nc": 10,
+    "Q": 1000 * np.eye(3),
+    "R": 5 * np.eye(2),
+    "rho": 10.0,
+    "v_min": np.array([0.2, 0.1]),
+    "v_max": np.array([0.8, 0.9]),
+    "dv_max": np.array([0.0025, 0.01]),
+}
+
+
+def random_time_varying(seed: int, Np: int = 20, N: int = 5, m: int = 2):
+    rng = np.random.default_rng(seed)
+    A = np.eye(N) + rng.normal(scale=0.05, size=(Np, N, N))
+    B = rng.normal(scale=0.1, size=(Np, N, m))
+    d = rng.normal(scale=0.01, size=(Np, N))
+    C = rng.normal(size=(3, N))
+    return A, B, d, C
+
+
+def brute_force_outputs(A, B, d, C, z, v_prev, dv) -> np.ndarray:
+    """y_1..y_Np by stepping z_{k+1} = A_k z_k + B_k v_k + d_k with v_k = v_prev + Σ_{j<=k} Δv_j."""
+    Np, Nc = len(A), len(dv)
+    v, outputs = v_prev.copy(), []
+    for k in range(Np):
+        if k < Nc:
+            v = v + dv[k]
+        z = A[k] @ z + B[k] @ v + d[k]
+        outputs.append(C @ z)
+    return np.array(outputs)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_time_varying_prediction_equals_a_step_by_step_rollout(seed: int) -> None:
+    A, B, d, C = random_time_varying(seed)
+    qp = TimeVaryingQP(C, 2, **SETTINGS)
+    qp.set_model(A, B, d)
+    rng = np.random.default_rng(10 + seed)
+    z, v_prev = rng.normal(size=5), rng.uniform(0.3, 0.7, size=2)
+    dv = rng.normal(scale=0.01, size=(10, 2))
+    np.testing.assert_allclose(
+        qp.predict(z, v_prev, dv), brute_force_outputs(A, B, d, C, z, v_prev, dv), atol=1e-12
+    )
+    # Every column of Θ is the response to one increment: compare the whole matrix.
+    free = brute_force_outputs(A, B, d, C, z, v_prev, np.zeros((10, 2)))
+    for j in range(20):
+        unit = np.eye(20)[j].reshape(10, 2)
+        column = brute_force_outputs(A, B, d, C, z, v_prev, unit) - free
+        np.testing.assert_allclose(qp.theta[:, j], column.ravel(), atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("target", "input_box"),
+    [
+        ([0.501, 0.501, 0.501], (0.2, 0.8)),  # unconstrained
+        ([0.9, 0.8, 0.2], (0.2, 0.8)),  # rate limits bind
+        ([0.1, 0.2, 0.9], (0.495, 0.52)),  # and the input bounds too
+    ],
+)
+def test_a_constant_time_varying_model_solves_the_time_invariant_qp(
+    target: list[float], input_box: tuple[float, float]
+) -> None:
+    model = linear_model()
+    box = {"v_min": np.full(2, input_box[0]), "v_max": np.full(2, input_box[1])}
+    lti = CondensedQP(model.A_, model.B_, model.C_, **{**SETTINGS, **box})
+    tv = TimeVaryingQP(model.C_, 2, **{**SETTINGS, **box})
+    Np = SETTINGS["Np"]
+    tv.set_model(np.repeat(model.A_[None], Np, 0), np.repeat(model.B_[None], Np, 0))
+    z, v_prev = model.lift(np.array([20.0, 0.0, 0.0])), np.full(2, 0.5)
+    y_ref = np.tile(target, Np)
+    np.testing.assert_allclose(tv.theta, lti.theta, atol=1e-12)
+    np.testing.assert_allclose(tv.P, lti.P, rtol=1e-10, atol=1e-9)
+    frozen = TimeVaryingQP(model.C_, 2, **{**SETTINGS, **box})
+    frozen.set_model(model.A_[None], model.B_[None])  # one model held over the horizon
+    np.testing.assert_allclose(frozen.theta, lti.theta, atol=1e-12)
+    np.testing.assert_allclose(
+        frozen.predict(
+            z := model.lift(np.array([20.0, 0.0, 0.0])), np.full(2, 0.5), np.ones((10, 2))
+        ),
+        lti.predict(z, np.full(2, 0.5), np.ones((10, 2))),
+        atol=1e-12,
+    )
+    expected, got = lti.solve(z, v_prev, y_ref), tv.solve(z, v_prev, y_ref)
+    assert got.path == expected.path
+    np.testing.assert_allclose(got.dv, expected.dv, atol=1e-8)
+    assert got.slack == pytest.approx(expected.slack, abs=1e-8)
+    by_piqp = tv.solve_piqp(z, v_prev, y_ref)
+    assert by_piqp.ok
+    np.testing.assert_allclose(by_piqp.dv, lti.solve_piqp(z, v_prev, y_ref).dv, atol=1e-7)
+    # A second step with another model: PIQP is given the new Hessian.
+    tv.set_model(np.repeat(model.A_[None], Np, 0), 2 * np.repeat(model.B_[None], Np, 0))
+    lti2 = CondensedQP(model.A_, 2 * model.B_, model.C_, **{**SETTINGS, **box})
+    np.testing.assert_allclose(
+        tv.solve_piqp(z, v_prev, y_ref).dv, lti2.solve_piqp(z, v_prev, y_ref).dv, atol=1e-7
+    )
+
+
+def test_a_wrongly_shaped_model_is_refused() -> None:
+    tv = TimeVaryingQP(np.eye(3), 2, **SETTINGS)
+    with pytest.raises(ValueError, match="time-varying model must be"):
+        tv.set_model(np.zeros((19, 3, 3)), np.zeros((20, 3, 2)))
+
+
+def test_the_bilinear_linearisation_equals_finite_differences_of_the_bilinear_step() -> None:
+    rng = np.random.default_rng(3)
+    N, m, K = 6, 2, 4
+    model = ToyBilinear(
+        A_=np.eye(N) + rng.normal(scale=0.05, size=(N, N)),
+        B_=rng.normal(scale=0.1, size=(N, m)),
+        H_=rng.normal(scale=0.1, size=(m, N, N)),
+        v0=rng.uniform(0.3, 0.6, size=m),
+    )
+    linear = BilinearLinearization(model)
+    z, v = rng.normal(size=(K, N)), rng.uniform(0, 1, size=(K, m))
+    A, B, d = linear.linearize(z, v)
+    h = 1e-6
+    for k in range(K):
+        for i in range(N):
+            e = np.eye(N)[i] * h
+            column = (linear.step(z[k] + e, v[k]) - linear.step(z[k] - e, v[k])) / (2 * h)
+            np.testing.assert_allclose(A[k][:, i], column, atol=1e-8)
+        for j in range(m):
+            e = np.eye(m)[j] * h
+            column = (linear.step(z[k], v[k] + e) - linear.step(z[k], v[k] - e)) / (2 * h)
+            np.testing.assert_allclose(B[k][:, j], column, atol=1e-8)
+    # The linearisation is exact at the point itself, and batched steps are the single steps.
+    np.testing.assert_allclose(
+        np.einsum("kab,kb->ka", A, z) + np.einsum("kaj,kj->ka", B, v) + d,
+        linear.step(z, v),
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(linear.step(z, v)[1], linear.step(z[1], v[1]), atol=1e-14)
+    expected = model.A_ @ z[0] + model.B_ @ v[0]
+    expected += np.einsum("j,jab,b->a", v[0] - model.v0_, model.H_, z[0])
+    np.testing.assert_allclose(linear.step(z[0], v[0]), expected, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("horizons", "linearization"),
+    [
+        ({"Np": 10, "Nc": 7}, "plan"),
+        ({"Np": 60, "Nc": 50}, "plan"),
+        ({"Np": 10, "Nc": 7}, "frozen"),
+    ],
+)
+def test_the_exact_bilinear_model_tracks_a_feasible_reference_on_its_own_plant(
+    horizons, linearization
+) -> None:
+    model = toy_bilinear_model()
+    reference = feasible_reference(model)
+    plant = ModelPlant(model, x0=reference[0])
+    controller = DEMPC(model, DEMPCConfig(**horizons, linearization=linearization))
+    assert isinstance(controller.qp, TimeVaryingQP)  # read as bilinear, not as A_, B_ alone
+    metrics, _ = track(plant, controller, reference, name="exact", recorder=Recorder())
+    assert metrics["rmse"]["vx"] < 0.05  # of a 40 m/s range
+    assert metrics["rmse"]["vy"] < 1e-3 and metrics["rmse"]["yaw_rate"] < 1e-3
+    assert metrics["solver_failures"] == 0
+    # Read as lifted-linear (H_ dropped), the same loop tracks worse.
+    dropped = LiftedLinearModel(model.A_, model.B_, model.normalizer_, constant_feature)
+    linear, _ = track(
+        plant, DEMPC(dropped, DEMPCConfig(**horizons)), reference, name="h", recorder=Recorder()
+    )
+    assert linear["rmse"]["yaw_rate"] > 3 * metrics["rmse"]["yaw_rate"]
+
+
+def test_more_sqp_iterations_plan_along_their_own_plan() -> None:
+    model = toy_bilinear_model()
+    reference = feasible_reference(model, steps=80)
+    x = np.array([20.0, 0.3, -0.1])
+    infos = []
+    for iterations in (1, 3):
+        controller = DEMPC(model, DEMPCConfig(Np=12, Nc=5, sqp_iterations=iterations))
+        controller.reset(reference)
+        _, info = controller.act(x, 0.0)
+        infos.append(info)
+    # After re-linearising along its own plan, the prediction is the bilinear model's own
+    # rollout of that plan to within the second-order term left out.
+    plan = np.vstack([infos[1].planned_inputs, np.repeat(infos[1].planned_inputs[-1:], 7, 0)])
+    plant = ModelPlant(model, x0=x)
+    stepped = np.array([plant.step(move) for move in plan])
+    first = infos[0]
+    plan0 = np.vstack([first.planned_inputs, np.repeat(first.planned_inputs[-1:], 7, 0)])
+    plant0 = ModelPlant(model, x0=x)
+    stepped0 = np.array([plant0.step(move) for move in plan0])
+    error3 = np.abs(infos[1].predicted_states - stepped).max()
+    error1 = np.abs(first.predicted_states - stepped0).max()
+    assert error3 < 1e-6 and error3 < error1
+
+
+@pytest.mark.parametrize("value", [0, 4, 1.5])
+def test_sqp_iterations_must_be_one_to_three(value: float) -> None:
+    with pytest.raises(ValueError, match=r"controller\.sqp_iterations must be 1, 2 or 3"):
+        DEMPCConfig(sqp_iterations=value)  # type: ignore[arg-type]
+
+
+def test_the_linearization_must_be_plan_or_frozen() -> None:
+    with pytest.raises(ValueError, match=r"controller\.linearization must be one of plan, frozen"):
+        DEMPCConfig(linearization="everywhere")
+
+
+@dataclass
+class ToyBilinear:
+    A_: np.ndarray
+    B_: np.ndarray
+    H_: np.ndarray
+    v0: np.ndarray
+
+    @property
+    def v0_(self) -> np.ndarray:
+        return self.v0
+
+    @property
+    def C_(self) -> np.ndarray:
+        return np.eye(3, self.A_.shape[0])
+
+    @property
+    def normalizer_(self) -> MinMaxNormalizer:
+        return toy_linear_model().normalizer_
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x, dtype=float)
+
+
+def test_the_structured_dual_operator_equals_the_dense_one() -> None:
+    A, B, d, C = random_time_varying(4)
+    qp = TimeVaryingQP(C, 2, **SETTINGS)
+    qp.set_model(A, B, d)
+    qp._ensure_dual()
+    p_inv = np.linalg.inv(qp.P)
+    np.testing.assert_allclose(qp._K, qp.G @ p_inv @ qp.G.T, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(qp._Zt, (p_inv @ qp.G.T).T, rtol=1e-9, atol=1e-12)
