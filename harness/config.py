@@ -213,13 +213,11 @@ def _check_periods(cfg: DictConfig) -> None:
     # The task's own subtree, and every top-level group it takes by interpolation (``${x}``).
     task = OmegaConf.to_container(cfg.task, resolve=False)
     assert isinstance(task, dict)
-    used = {}
+    used = {"task": cfg.task}
     for value in task.values():
         group = re.fullmatch(r"\$\{(\w+)\}", value) if isinstance(value, str) else None
         if group and group.group(1) in cfg and group.group(1) != "plant":
             used[group.group(1)] = cfg[group.group(1)]
-    # The groups first: ``controller.dt`` is named before the extra controllers built from it.
-    used["task"] = cfg.task
     for path, node in used.items():
         for key, value in _periods(node, path):
             if not math.isclose(value, period, rel_tol=1e-9):
