@@ -148,15 +148,8 @@ def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_h
         )
     params = cfg.hydra.sweeper.params
     assert params.seed == "0,1,2"
-    assert set(params.learner.split(",")) == {
-        "edmd",
-        "elm_edmd",
-        "dnn",
-        "deep_edmd",
-        "dnn_random_layer",
-        "deep_edmd_random_layer",
-        "deep_edmd_lstsq",
-    }
+    # every learner of conf/learner/, the physics baseline and the bilinear ones included
+    assert set(params.learner.split(",")) == {p.stem for p in (CONF_DIR / "learner").glob("*.yaml")}
     assert cfg.data.episodes == 40
     assert (cfg.controller.Np, cfg.controller.Nc) == (10, 7)
     long = cfg.task.extra_controllers.de_mpc_long

@@ -19,6 +19,7 @@ TINY = [
     "data.min_steps=300",
     "data.max_steps=400",
     "data.split={train: 1, validation: 1, test: 1}",
+    "data.start_speed_mps=[0,0]",  # from rest: the drives barely move (the baseline says so)
     "recorder=none",
     "~reference@task.references.double_lane_change",  # the test drive only
 ]
