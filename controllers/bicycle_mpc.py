@@ -4,8 +4,9 @@ What a vehicle engineer would run before learning anything: the linear single-tr
 a first-order longitudinal channel (:class:`learners.single_track.SingleTrack`), its cornering
 stiffnesses, yaw inertia, steering ratio and longitudinal gains identified by least squares from
 the same training drives the learners get, controlled by the same DE-MPC with the same settings
-(horizons, weights, limits). The model is nonlinear in the speed (1/vx, vx·r), so the MPC
-linearises it along its previous plan every step (the time-varying QP).
+(horizons, limits, weights but vy's, see ``BicycleMPCConfig.Q``). The model is nonlinear in the
+speed (1/vx, vx·r), so the MPC linearises it along its previous plan every step (the
+time-varying QP).
 
 The factory brings its own model: :meth:`BicycleMPCConfig.learner` is the unfitted single-track
 model (``model:`` keys, ``conf/learner/single_track.yaml``'s), which the pipeline fits on the
@@ -29,6 +30,11 @@ class BicycleMPCConfig(DEMPCConfig):
     """DE-MPC's settings plus ``model``, the single-track model's keys (checked when built)."""
 
     model: Any = None  # mapping of SingleTrack's keyword arguments; None: its defaults
+    # vy weighed at 1 % of vx and r: the reference's vy is the steady-state sideslip (vy = -1.3 r
+    # at 80 km/h), but within the 0.1 s horizon steering moves vy the same way as r (the front
+    # tyre pushes the centre of gravity first). At Q = 1000·I the QP traded the two errors and
+    # did not steer (docs/control.md, "The baseline that did not steer").
+    Q: Any = (1000.0, 10.0, 1000.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()
