@@ -30,11 +30,6 @@ class BicycleMPCConfig(DEMPCConfig):
     """DE-MPC's settings plus ``model``, the single-track model's keys (checked when built)."""
 
     model: Any = None  # mapping of SingleTrack's keyword arguments; None: its defaults
-    # vy weighed at 1 % of vx and r: the reference's vy is the steady-state sideslip (vy = -1.3 r
-    # at 80 km/h), but within the 0.1 s horizon steering moves vy the same way as r (the front
-    # tyre pushes the centre of gravity first). At Q = 1000·I the QP traded the two errors and
-    # did not steer (docs/control.md, "The baseline that did not steer").
-    Q: Any = (1000.0, 10.0, 1000.0)
 
     def __post_init__(self) -> None:
         super().__post_init__()

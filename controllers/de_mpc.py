@@ -57,7 +57,11 @@ class DEMPCConfig:
 
     Np: int = 10
     Nc: int = 7
-    Q: Any = 1000.0  # scalar, n diagonal entries or n x n (OmegaConf has no float | list)
+    # Scalar, n diagonal entries or n x n (OmegaConf has no float | list). vy at 1 % (ours; the
+    # paper's is 1000·I): a reference's vy is the steady-state sideslip, opposite to r at speed,
+    # but within a 0.1 s horizon steering moves vy with r, so at 1000·I the QP trades the two
+    # errors and barely steers (docs/control.md, "The baseline that did not steer").
+    Q: Any = (1000.0, 10.0, 1000.0)
     R: Any = 5.0  # scalar, m diagonal entries or m x m
     rho: float = 10.0
     steer_wheel_min_deg: float = -STEER_WHEEL_LIMIT_DEG

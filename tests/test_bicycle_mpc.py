@@ -36,10 +36,10 @@ def test_the_baseline_steers_towards_a_negative_yaw_rate_reference() -> None:
     assert x[2] < 0.5 * yaw_rate  # and the yaw rate follows
 
 
-def test_the_pipelines_baseline_configs_weigh_vy_as_the_dataclass() -> None:
-    """The pipeline builds the baseline from the YAML, not from the dataclass's defaults."""
-    for name in ("bicycle_mpc", "bicycle_mpc_long"):
+def test_the_pipelines_controllers_all_weigh_vy_as_the_dataclass() -> None:
+    """The pipeline builds every controller from its YAML: the baseline and the learners' DE-MPC
+    weigh the states alike (a fair comparison), vy at 1 %."""
+    for name in ("bicycle_mpc", "bicycle_mpc_long", "de_mpc", "de_mpc_long"):
         config = instantiate(compose_config(f"controller={name}").controller)
-        assert isinstance(config, BicycleMPCConfig)
         np.testing.assert_array_equal(config.weights()[0], BicycleMPCConfig().weights()[0])
         assert config.weights()[0][1, 1] < 0.1 * config.weights()[0][2, 2]
