@@ -82,12 +82,7 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
         full_key = f"{path}.{key}" if path else str(key)
         if structured and key not in known:
             raise ValueError(f"unknown key {full_key}; known keys: {', '.join(known)}")
-        # Interpolations point at nodes checked where they live (``task.data: ${data}``).
-        if (
-            full_key == "hydra"
-            or OmegaConf.is_interpolation(node, key)
-            or OmegaConf.is_missing(node, key)
-        ):
+        if _not_checked_here(node, key, full_key):
             continue
         child = node[key]
         if isinstance(child, float) and not math.isfinite(child):
@@ -101,16 +96,22 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
             raise ValueError(_rekeyed(str(error), path, node)) from None
 
 
+def _not_checked_here(node: DictConfig | ListConfig, key: Any, full_key: str) -> bool:
+    """Hydra's own node, interpolations (checked where they point: ``task.data: ${data}``) and
+    missing values are not checked where they appear."""
+    return (
+        full_key == "hydra"
+        or OmegaConf.is_interpolation(node, key)
+        or OmegaConf.is_missing(node, key)
+    )
+
+
 def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
     """Instantiate every ``_target_`` node below ``node`` that no structured schema covers."""
     keys: list[Any] = list(node.keys()) if isinstance(node, DictConfig) else list(range(len(node)))
     for key in keys:
         full_key = f"{path}.{key}" if path else str(key)
-        if (
-            full_key == "hydra"
-            or OmegaConf.is_interpolation(node, key)
-            or OmegaConf.is_missing(node, key)
-        ):
+        if _not_checked_here(node, key, full_key):
             continue
         child = node[key]
         if not isinstance(child, (DictConfig, ListConfig)):

@@ -43,12 +43,14 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from harness.data.episode import MinMaxNormalizer
 from learners.base import INPUT_DIM, STATE_DIM, check_choice, check_rollout_args
 from learners.dictionaries import Dictionary
 from learners.edmd import EDMD
 
 __all__ = [
     "BilinearEDMD",
+    "BilinearOperator",
     "bilinear_matrices",
     "bilinear_regression_rows",
     "bilinear_rollout",
@@ -121,7 +123,28 @@ def bilinear_matrices(
     return a, b, h
 
 
-class BilinearEDMD(EDMD):
+class BilinearOperator:
+    """What every bilinear learner shares: ``v0_`` and the state matrix at a held input.
+
+    Mixed into a fitted learner with ``A_``, ``H_`` and ``normalizer_``.
+    """
+
+    A_: np.ndarray
+    H_: np.ndarray
+    normalizer_: MinMaxNormalizer
+
+    @property
+    def v0_(self) -> np.ndarray:
+        """Normalized input of no steering and no pedal, where the bilinear term vanishes."""
+        return self.normalizer_.inputs(np.zeros(self.normalizer_.input_min.shape[0]))
+
+    def transition(self, v: np.ndarray) -> np.ndarray:
+        """A + sum_j (v_j - v0_j) H_j: the state matrix while the normalized input v is held."""
+        vbar = np.asarray(v, dtype=np.float64) - self.v0_
+        return self.A_ + np.einsum("...j,jnk->...nk", vbar, self.H_)
+
+
+class BilinearEDMD(BilinearOperator, EDMD):
     """EDMD with the bilinear input term (see the module docstring).
 
     Args:
@@ -148,11 +171,6 @@ class BilinearEDMD(EDMD):
         self.ridge_prior = check_choice("ridge_prior", ridge_prior, RIDGE_PRIORS)
         self._hyperparameters["ridge_prior"] = self.ridge_prior
 
-    @property
-    def v0_(self) -> np.ndarray:
-        """Normalized input of no steering and no pedal, where the bilinear term vanishes."""
-        return self.normalizer_.inputs(np.zeros(self.normalizer_.input_min.shape[0]))
-
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         n, m = self.C_.shape[0], self.B_.shape[1]
         x0, inputs = check_rollout_args(x0, inputs, n, m)
@@ -163,11 +181,6 @@ class BilinearEDMD(EDMD):
             x = self.normalizer_.states_inverse(z @ self.C_.T)
         x[..., 0, :] = x0
         return x
-
-    def transition(self, v: np.ndarray) -> np.ndarray:
-        """A + sum_j (v_j - v0_j) H_j: the state matrix while the normalized input v is held."""
-        vbar = np.asarray(v, dtype=np.float64) - self.v0_
-        return self.A_ + np.einsum("...j,jnk->...nk", vbar, self.H_)
 
     # -- EDMD's hooks ---------------------------------------------------------------------------
 

@@ -31,6 +31,7 @@ from harness.data.episode import Episode
 from learners.base import check, check_choice, check_nonnegative
 from learners.bilinear import (
     RIDGE_PRIORS,
+    BilinearOperator,
     bilinear_matrices,
     bilinear_regression_rows,
     bilinear_rollout,
@@ -42,7 +43,7 @@ from learners.nets import Dense, mlp_apply
 __all__ = ["BilinearDeepEDMD"]
 
 
-class BilinearDeepEDMD(DeepEDMD):
+class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
     """Deep EDMD with a bilinear operator refitted after training (module docstring).
 
     Args:
@@ -70,16 +71,6 @@ class BilinearDeepEDMD(DeepEDMD):
         self.bilinear_ridge = check_nonnegative("bilinear_ridge", bilinear_ridge)
         self.ridge_prior = check_choice("ridge_prior", ridge_prior, RIDGE_PRIORS)
         self._hyperparameters.update(bilinear_ridge=self.bilinear_ridge, ridge_prior=ridge_prior)
-
-    @property
-    def v0_(self) -> np.ndarray:
-        """Normalized input of no steering and no pedal, where the bilinear term vanishes."""
-        return self.normalizer_.inputs(np.zeros(self.normalizer_.input_min.shape[0]))
-
-    def transition(self, v: np.ndarray) -> np.ndarray:
-        """A + sum_j (v_j - v0_j) H_j: the state matrix while the normalized input v is held."""
-        vbar = np.asarray(v, dtype=np.float64) - self.v0_
-        return self.A_ + np.einsum("...j,jnk->...nk", vbar, self.H_)
 
     def _after_training(self, train: Sequence[Episode]) -> None:
         super()._after_training(train)  # C_ (and the linear A_, B_ the losses trained)

@@ -332,6 +332,23 @@ def spectrum_table(jobs: list[Run]) -> Table:
     return table
 
 
+def _course_runs(
+    jobs: list[Run],
+) -> Iterable[tuple[Run, tuple[str, str, str, str, str], Mapping[str, Any]]]:
+    """(job, (learner, controller, surface, reference, variant), path metrics) of every run
+    judged on a course, on the job's own plant and on every plant it was evaluated on."""
+    common = common_overrides(jobs)
+    for job in jobs:
+        sections = {job.plant: job.metrics or {}, **(_get(job.metrics, "generalization") or {})}
+        for surface, section in sections.items():
+            runs = _tracking_runs(section.get("tracking") or {}, job.controller)
+            for controller, reference, metrics in runs:
+                path = metrics.get("path")
+                if isinstance(path, Mapping):
+                    varied = variant(job, common) or "—"
+                    yield job, (job.learner, controller, surface, reference, varied), path
+
+
 def course_table(jobs: list[Run]) -> Table:
     """Every closed-loop run judged on a course (``path``): learner × controller × surface ×
     reference, passes out of jobs, cones hit and deviation (``experiment=lane_change``: the
@@ -345,17 +362,9 @@ def course_table(jobs: list[Run]) -> Table:
             *("max deviation", "rms deviation", "exit heading error", "exit speed"),
         ],
     )
-    common = common_overrides(jobs)
-    runs: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
-    for job in jobs:
-        sections = {job.plant: job.metrics or {}, **(_get(job.metrics, "generalization") or {})}
-        for surface, section in sections.items():
-            for controller, reference, metrics in _tracking_runs(
-                section.get("tracking") or {}, job.controller
-            ):
-                if isinstance(metrics.get("path"), Mapping):
-                    key = (job.learner, controller, surface, reference, variant(job, common) or "—")
-                    runs[key].append(metrics["path"])
+    runs: dict[tuple[str, ...], list[Mapping[str, Any]]] = defaultdict(list)
+    for _, key, path in _course_runs(jobs):
+        runs[key].append(path)
     for key, paths in sorted(runs.items(), key=lambda kv: _natural(kv[0])):
         passed = sum(bool(p.get("passed")) for p in paths)
         table.rows.append(
@@ -381,21 +390,14 @@ def course_speed_table(jobs: list[Run]) -> Table:
         "Highest lane-change speed passed (every job of the row passed it; km/h)",
         ["learner", "controller", "surface", "variant", "jobs", "highest passed", "speeds tried"],
     )
-    common = common_overrides(jobs)
     speeds: dict[tuple[str, ...], dict[float, list[bool]]] = defaultdict(lambda: defaultdict(list))
     jobs_per_key: dict[tuple[str, ...], set[str]] = defaultdict(set)
-    for job in jobs:
-        sections = {job.plant: job.metrics or {}, **(_get(job.metrics, "generalization") or {})}
-        for surface, section in sections.items():
-            for controller, _, metrics in _tracking_runs(
-                section.get("tracking") or {}, job.controller
-            ):
-                path = metrics.get("path")
-                if isinstance(path, Mapping) and path.get("reference_speed_mps") is not None:
-                    key = (job.learner, controller, surface, variant(job, common) or "—")
-                    kph = round(3.6 * float(path["reference_speed_mps"]))
-                    speeds[key][kph].append(bool(path.get("passed")))
-                    jobs_per_key[key].add(job.name)
+    for job, (learner, controller, surface, _, varied), path in _course_runs(jobs):
+        if path.get("reference_speed_mps") is not None:
+            key = (learner, controller, surface, varied)
+            kph = round(3.6 * float(path["reference_speed_mps"]))
+            speeds[key][kph].append(bool(path.get("passed")))
+            jobs_per_key[key].add(job.name)
     for key, by_speed in sorted(speeds.items()):
         passed = [kph for kph, results in by_speed.items() if all(results)]
         highest = str(max(passed)) if passed else "none"
