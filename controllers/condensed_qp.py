@@ -464,28 +464,64 @@ class TimeVaryingQP(CondensedQP):
         self._piqp_hessian_ready = True  # _build_piqp built it from the initial P
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
+        self._given_free: np.ndarray | None = None
 
     def set_model(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None = None) -> None:
         """The model of this step: A (Np, N, N), B (Np, N, m), d (Np, N) (default 0); or one
-        (A (1, N, N), B (1, N, m), d (1, N)) held over the whole horizon (a frozen
-        linearisation: Θ from one step response, far cheaper for a large N and Np)."""
+        (A (1, N, N), B (1, N, m)) held over the whole horizon (a frozen linearisation: Θ from
+        one step response, far cheaper for a large N and Np), with d (1, N) or (Np, N) (a known
+        input that changes along the horizon)."""
+        self._set_theta(self._model_theta(A, B, d))
+
+    def model_prediction(
+        self,
+        A: np.ndarray,
+        B: np.ndarray,
+        d: np.ndarray | None,
+        z: np.ndarray,
+        v_prev: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(Θ, free response) of the model (A, B, d) as :meth:`set_model` takes it, from z and
+        v_prev, without building this QP's cost: the prediction another QP builds on."""
+        theta = self._model_theta(A, B, d)
+        return theta, self.free_response(z, v_prev)
+
+    def _model_theta(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+        """Θ of the model (A, B, d), which then drives :meth:`free_response`."""
         Np, N, m, Nc = self.Np, self.N, self.m, self.Nc
         A, B = np.asarray(A, dtype=float), np.asarray(B, dtype=float)
         K = A.shape[0] if A.ndim == 3 and A.shape[0] == 1 else Np
         d = np.zeros((K, N)) if d is None else np.asarray(d, dtype=float)
-        if A.shape != (K, N, N) or B.shape != (K, N, m) or d.shape != (K, N):
+        if A.shape != (K, N, N) or B.shape != (K, N, m) or d.shape not in ((K, N), (Np, N)):
             raise ValueError(
                 f"time-varying model must be A ({Np} or 1, {N}, {N}), B ({K}, {N}, {m}), "
-                f"d ({K}, {N}); got {A.shape}, {B.shape}, {d.shape}"
+                f"d ({K} or {Np}, {N}); got {A.shape}, {B.shape}, {d.shape}"
             )
         self._free_key = None
+        self._given_free = None
         if K == 1:
-            self.theta = time_invariant_theta(A[0], B[0], self.C, Np, Nc)
+            theta = time_invariant_theta(A[0], B[0], self.C, Np, Nc)
             A, B, d = (np.broadcast_to(a, (Np, *a.shape[1:])) for a in (A, B, d))
         else:
-            self.theta = time_varying_theta(A, B, self.C, Nc)
+            theta = time_varying_theta(A, B, self.C, Nc)
         self._A, self._B, self._d = A, B, d
-        M = m * Nc
+        return theta
+
+    def set_prediction(self, theta: np.ndarray, free: np.ndarray) -> None:
+        """The step's prediction given directly, Y = free + Θ ΔV (Θ (n Np, m Nc), free (n Np,)),
+        for outputs that are not C z of one model (path following: a model's outputs and the
+        errors to a path they drive, ``controllers/path_following.py``)."""
+        shape = (self.n * self.Np, self.m * self.Nc)
+        theta, free = np.asarray(theta, dtype=float), np.asarray(free, dtype=float)
+        if theta.shape != shape or free.shape != shape[:1]:
+            raise ValueError(f"prediction must be Θ {shape} and free ({shape[0]},)")
+        self._given_free = free
+        self._set_theta(theta)
+
+    def _set_theta(self, theta: np.ndarray) -> None:
+        """Θ, and what follows from it: the Hessian, its factor and the unconstrained gain."""
+        self.theta = theta
+        Np, M = self.Np, self.m * self.Nc
         q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, self.n, M)).reshape(
             self.n * Np, M
         )
@@ -502,7 +538,10 @@ class TimeVaryingQP(CondensedQP):
         self._dual_ready = False
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
-        """(n Np,) outputs of the step's model with the input held at v_prev."""
+        """(n Np,) outputs of the step's model with the input held at v_prev (the given one
+        after :meth:`set_prediction`, whatever z and v_prev)."""
+        if self._given_free is not None:
+            return self._given_free
         key = (np.asarray(z, dtype=float).tobytes(), np.asarray(v_prev, dtype=float).tobytes())
         if key != self._free_key:  # solve and its PIQP fallback ask for the same one
             drive = self._B @ v_prev + self._d  # (Np, N)

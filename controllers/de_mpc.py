@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import numbers
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -30,10 +31,12 @@ import numpy as np
 from controllers.blas import single_threaded
 from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
 from controllers.linearization import BilinearLinearization
+from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.budget import check_memory
 from harness.data.episode import MinMaxNormalizer
 from harness.interfaces import BilinearModel, LiftedModel, LinearizableModel, StepInfo
 from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
+from harness.references.path import ReferencePath
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +45,9 @@ STATES, INPUTS = 3, 2
 # the horizon), or at the current state and next input only, held over the horizon (frozen:
 # Θ from one step response: far cheaper for a large lift at 60/50, see docs/control.md).
 LINEARIZATIONS = ("plan", "frozen")
+# What the cost follows: the reference's states (the paper's), or a run's path when it has one
+# (lateral and heading error, controllers/path_following.py; state tracking where it has none).
+REFERENCES = ("states", "path")
 
 
 @dataclass(frozen=True)
@@ -77,6 +83,10 @@ class DEMPCConfig:
     active_set: bool = True
     sqp_iterations: int = 1
     linearization: str = "plan"
+    reference: str = "states"
+    # reference=path: diagonal weights on (vx, vy, yaw rate) errors, normalized as Q's, then on
+    # the lateral error (per m²) and heading error (per rad²) to the path.
+    Q_path: Any = (1000.0, 0.0, 300.0, 30.0, 300.0)
 
     def __post_init__(self) -> None:
         _check_types(self)
@@ -90,8 +100,14 @@ class DEMPCConfig:
                 f"controller.linearization must be one of {', '.join(LINEARIZATIONS)} "
                 f"(got {self.linearization!r})"
             )
+        if self.reference not in REFERENCES:
+            raise ValueError(
+                f"controller.reference must be one of {', '.join(REFERENCES)} "
+                f"(got {self.reference!r})"
+            )
         _check_qp_size(int(self.Np), int(self.Nc))
         self.weights()
+        self.path_weights()
         _check_positive(
             rho=self.rho,
             steer_wheel_increment_deg=self.steer_wheel_increment_deg,
@@ -107,6 +123,24 @@ class DEMPCConfig:
     def weights(self) -> tuple[np.ndarray, np.ndarray]:
         """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
         return _weight("Q", self.Q, STATES), _weight("R", self.R, INPUTS)
+
+    def path_weights(self) -> np.ndarray:
+        """Q_path as a (5, 5) diagonal: non-negative, and the path's errors weighed at all."""
+        try:
+            diagonal = np.asarray(self.Q_path, dtype=float)
+        except (TypeError, ValueError):
+            diagonal = np.full(0, np.nan)
+        if (
+            diagonal.shape != (STATES + ERRORS,)
+            or not np.all(np.isfinite(diagonal))
+            or np.any(diagonal < 0)
+            or not np.any(diagonal[STATES:] > 0)
+        ):
+            raise ValueError(
+                "controller.Q_path must be 5 weights >= 0 on (vx, vy, yaw rate, lateral error, "
+                f"heading error), the last two not both 0 (got {self.Q_path!r})"
+            )
+        return np.diag(diagonal)
 
     def __call__(
         self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
@@ -181,14 +215,34 @@ class DEMPC:
             self.qp = CondensedQP(A, B, C, **settings)
         else:
             self.qp = TimeVaryingQP(C, INPUTS, **settings)
+        self.C = C
+        self.frenet: FrenetOutputs | None = None
+        self.path_qp: TimeVaryingQP | None = None
+        if config.reference == "path":
+            # Its prediction is built from the states QP's every step (set_prediction): it
+            # has outputs, no model of its own (no lifted state: N = 0).
+            self.frenet = FrenetOutputs(self.normalizer, self.dt)
+            settings["Q"] = config.path_weights()
+            self.path_qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **settings)
+        self._path: ReferencePath | None = None
+        self._path_hint: int | None = None
+        self._frenet_now: tuple[float, float, float, np.ndarray] = (0.0, 0.0, 0.0, np.zeros(0))
         self._reference: np.ndarray | None = None
         self._reference_steps = 0
         self._start(None)
 
-    def reset(self, reference: np.ndarray, *, u_prev: np.ndarray | None = None) -> None:
+    def reset(
+        self,
+        reference: np.ndarray,
+        *,
+        path: ReferencePath | None = None,
+        u_prev: np.ndarray | None = None,
+    ) -> None:
         """Start a run tracking ``reference`` ((T, 3) physical states at ``dt``) from u_prev.
 
-        The paper starts from u = 0 (wheel straight, no pedal).
+        The paper starts from u = 0 (wheel straight, no pedal). With ``reference: path`` and a
+        ``path``, the run follows the path (and the reference's speed); without one it tracks
+        the states.
         """
         reference = np.asarray(reference, dtype=float)
         if reference.ndim != 2 or reference.shape[1] != STATES or len(reference) < 2:
@@ -198,6 +252,10 @@ class DEMPC:
         tail = np.repeat(normalized[-1:], self.Np + 1, axis=0)
         self._reference = np.ascontiguousarray(np.vstack([normalized, tail]))
         self._reference_steps = len(reference)
+        self._path = path if self.path_qp is not None else None
+        self._path_hint = None
+        if self.path_qp is not None and path is None:
+            log.info("controller.reference=path: this run has no path, tracking its states")
         self._start(u_prev)
 
     def _start(self, u_prev: np.ndarray | None) -> None:
@@ -207,21 +265,43 @@ class DEMPC:
         self._plan: np.ndarray | None = None
         self._plan_step = 0
         self.qp.reset()
+        if self.path_qp is not None:
+            self.path_qp.reset()
 
-    def act(self, x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
+    @property
+    def follows_path(self) -> bool:
+        """Whether this run follows a path (``reference: path`` and a path at reset)."""
+        return self._path is not None
+
+    def act(
+        self, x: np.ndarray, t: float, *, pose: np.ndarray | None = None
+    ) -> tuple[np.ndarray, StepInfo]:
         """Input (steer_wheel_deg, pedal) for measured state ``x`` at time ``t`` (s), and the
-        horizon it plans: the model's predicted states under the plan, the plan itself."""
+        horizon it plans: the model's predicted states under the plan, the plan itself.
+        ``pose`` (X, Y, yaw): needed when the run follows a path."""
         if self._reference is None:
             raise ValueError("DEMPC.reset(reference) must be called before act()")
+        x = np.asarray(x, dtype=float)
         k = min(round(t / self.dt), self._reference_steps - 1)
-        z = np.asarray(self.model.lift(np.asarray(x, dtype=float)), dtype=float)
+        z = np.asarray(self.model.lift(x), dtype=float)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
         v_prev = self._v_prev
-        if self.linearization is None:
+        qp: CondensedQP = self.qp
+        if self._path is not None and self.path_qp is not None:
+            if pose is None:
+                raise ValueError("a DE-MPC run that follows a path needs the car's pose in act()")
+            qp = self.path_qp
+            y_ref = self._path_reference(x, pose, y_ref)
+            solution = self._solve_path(z, v_prev, y_ref)
+        elif self.linearization is None:
             solution = self.qp.solve(z, v_prev, y_ref)
         else:
+            states_qp = self.qp
+            assert isinstance(states_qp, TimeVaryingQP)
             with single_threaded():  # small products: one BLAS thread is fastest (blas.py)
-                solution = self._solve_time_varying(self.linearization, z, v_prev, y_ref)
+                solution = self._solve_time_varying(
+                    z, v_prev, states_qp.set_model, lambda: states_qp.solve(z, v_prev, y_ref)
+                )
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
             self._plan_step = 1
@@ -238,26 +318,72 @@ class DEMPC:
         planned_inputs = self.normalizer.inputs_inverse(plan)
         u = np.clip(planned_inputs[0], self.u_min, self.u_max)
         info = StepInfo(
-            predicted_states=self.normalizer.states_inverse(self.qp.predict(z, v_prev, dv)),
+            predicted_states=self.normalizer.states_inverse(qp.predict(z, v_prev, dv)[:, :STATES]),
             planned_inputs=planned_inputs,
             solve_path=solution.path,
             fallback=not solution.ok,
+            follows_path=self._path is not None,
         )
         return u, info
 
+    def _path_reference(self, x: np.ndarray, pose: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
+        """Locate the car on the path; the path QP's references (5 Np,): the reference's speed
+        (and vy, normally unweighted) by time, the yaw rate the path asks for where the car
+        will be (v̄ κ: by place, not time), zero lateral and heading error. Keeps what
+        :meth:`_solve_path` needs: the errors now, v̄ and the curvature ahead."""
+        assert self._path is not None
+        frenet = self._path.locate(pose, self._path_hint)
+        self._path_hint = frenet.index
+        speed = float(x[0])
+        ahead = frenet.station_m + speed * self.dt * np.arange(self.Np + 1)
+        curvature = self._path.curvature_at(ahead)
+        self._frenet_now = (frenet.lateral_error_m, frenet.heading_error_rad, speed, curvature[:-1])
+        states_ref = self.normalizer.states_inverse(y_ref.reshape(self.Np, STATES))
+        states_ref[:, 2] = speed * curvature[1:]
+        errors_ref = np.zeros((self.Np, ERRORS))
+        return np.hstack([self.normalizer.states(states_ref), errors_ref]).ravel()
+
+    def _solve_path(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
+        """The path QP on the model's prediction (its own, linearised as in state tracking)
+        extended by the errors to the path (``controllers/path_following.py``)."""
+        assert self.frenet is not None and self.path_qp is not None
+        frenet, path_qp, states_qp = self.frenet, self.path_qp, self.qp
+        y0 = self.C @ z
+
+        def set_prediction(theta: np.ndarray, free: np.ndarray) -> None:
+            path_qp.set_prediction(*frenet.extend(theta, free, y0, *self._frenet_now))
+
+        if self.linearization is None:
+            set_prediction(states_qp.theta, states_qp.free_response(z, v_prev))
+            return path_qp.solve(z, v_prev, y_ref)
+        assert isinstance(states_qp, TimeVaryingQP)
+        with single_threaded():
+            return self._solve_time_varying(
+                z,
+                v_prev,
+                lambda A, B, d: set_prediction(*states_qp.model_prediction(A, B, d, z, v_prev)),
+                lambda: path_qp.solve(z, v_prev, y_ref),
+            )
+
     def _solve_time_varying(
-        self, model: LinearizableModel, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray
+        self,
+        z: np.ndarray,
+        v_prev: np.ndarray,
+        set_model: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None],
+        solve: Callable[[], QPSolution],
     ) -> QPSolution:
         """Linearise along the input guess rolled out from z (or, frozen, at z and the next
-        input only), solve; ``sqp_iterations`` times, each along the plan just found."""
-        assert isinstance(self.qp, TimeVaryingQP)
+        input only), give the QP that model (``set_model(A, B, d)``) and ``solve``;
+        ``sqp_iterations`` times, each along the plan just found."""
+        model = self.linearization
+        assert model is not None
         guess = self._input_guess(v_prev)
         for _ in range(self.sqp_iterations):
             if self.config.linearization == "frozen":
-                self.qp.set_model(*model.linearize(z[None], guess[:1]))
+                set_model(*model.linearize(z[None], guess[:1]))
             else:
-                self.qp.set_model(*model.linearize(_rollout(model, z, guess), guess))
-            solution = self.qp.solve(z, v_prev, y_ref)
+                set_model(*model.linearize(_rollout(model, z, guess), guess))
+            solution = solve()
             if not solution.ok:
                 break
             guess = _held(v_prev + np.cumsum(solution.dv, axis=0), self.Np)

@@ -24,6 +24,7 @@ import numpy as np
 
 if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import nothing heavy
     from harness.data.episode import MinMaxNormalizer
+    from harness.references.path import ReferencePath
 
 STATE_NAMES: tuple[str, ...] = ("vx", "vy", "yaw_rate")
 INPUT_NAMES: tuple[str, ...] = ("steer_wheel_deg", "pedal")
@@ -121,23 +122,33 @@ class StepInfo:
     the plan (Np = 0 for a controller without a model); ``planned_inputs`` (Nc, m): the plan
     itself in physical units; ``solve_path``: which solver answered (DE-MPC: unconstrained,
     active_set, piqp, failed); ``fallback``: the solve failed and a previous plan's move was
-    applied instead.
+    applied instead; ``follows_path``: the step steered by the run's path (lateral and heading
+    error), not by the reference's states.
     """
 
     predicted_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     planned_inputs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     solve_path: str = "n/a"
     fallback: bool = False
+    follows_path: bool = False
 
 
 @runtime_checkable
 class Controller(Protocol):
-    """A feedback law on the plant: ``reset(reference)`` before a run, then ``act`` every step."""
+    """A feedback law on the plant: ``reset(reference)`` before a run, then ``act`` every step.
 
-    def reset(self, reference: np.ndarray) -> None:
-        """Start a run tracking ``reference``: (T, n) physical states at the control period."""
+    A run on a course also hands the controller the path to follow and, every step, the car's
+    pose: a path-following controller steers by them, a state-tracking one ignores them.
+    """
+
+    def reset(self, reference: np.ndarray, *, path: ReferencePath | None = None) -> None:
+        """Start a run tracking ``reference``: (T, n) physical states at the control period;
+        ``path``: the line those states drive along, where the run has one."""
         ...
 
-    def act(self, x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
-        """The input u for measured state x at time t (s), and what the controller did."""
+    def act(
+        self, x: np.ndarray, t: float, *, pose: np.ndarray | None = None
+    ) -> tuple[np.ndarray, StepInfo]:
+        """The input u for measured state x at time t (s), and what the controller did;
+        ``pose``: (X, Y, yaw) in the world frame (m, m, rad), where the run has a path."""
         ...

@@ -36,8 +36,9 @@ from matplotlib.figure import Figure
 
 from harness.artifacts import load_arrays, save_arrays
 from harness.figures import save_figure
-from harness.interfaces import INPUT_NAMES, STATE_NAMES, Controller, Plant
+from harness.interfaces import INPUT_NAMES, STATE_NAMES, Controller, Plant, StepInfo
 from harness.recorder import Recorder
+from harness.references.path import ReferencePath
 from harness.rollout import Trajectory, closed_loop
 
 
@@ -60,20 +61,27 @@ def track(
     figure_path: Path | None = None,
     arrays_path: Path | None = None,
     tab_priority: int = 1,
+    path: ReferencePath | None = None,
 ) -> tuple[dict[str, Any], TrackingTrajectory]:
     """Track ``reference`` ((T, 3) states at plant.dt) from rest-or-rolling at its first speed.
 
     ``figure_path``: the tracking figure; ``arrays_path``: the run as ``.npz`` (see
     :func:`save_run`), which a sweep's report overlays across learners; ``tab_priority``: where
-    its tab goes in the recording (see :meth:`Recorder.rollout`; tracking comes before data).
+    its tab goes in the recording (see :meth:`Recorder.rollout`; tracking comes before data);
+    ``path``: the line the reference drives along, given to the controller with the car's pose
+    every step (a path-following controller steers by them).
     """
     reference = np.asarray(reference, dtype=float)
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
         raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
-    controller.reset(reference)
+    controller.reset(reference, path=path)
+
+    def act(x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
+        return controller.act(x, t, pose=plant.pose if path is not None else None)
+
     loop = closed_loop(
         plant,
-        controller.act,
+        act,
         len(reference),
         speed_mps=float(reference[0, 0]),
         timed=True,
@@ -92,6 +100,7 @@ def track(
     )
     metrics = tracking_metrics(run, plant.dt, sum(info.fallback for info in infos))
     metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))
+    metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
     _record(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:

@@ -24,6 +24,7 @@ from harness.references.iso3888 import (
     double_lane_change_path,
     lane_offset_m,
 )
+from harness.references.path import FrenetState, ReferencePath
 
 
 @runtime_checkable
@@ -54,9 +55,11 @@ __all__ = [
     "Course",
     "CourseReference",
     "DoubleLaneChange",
+    "FrenetState",
     "HeldOutEpisode",
     "Lane",
     "Reference",
+    "ReferencePath",
     "double_lane_change",
     "double_lane_change_course",
     "double_lane_change_path",

@@ -27,6 +27,7 @@ from matplotlib.figure import Figure
 
 from harness.figures import save_figure
 from harness.recorder import Recorder
+from harness.references.path import ReferencePath
 
 
 @dataclass(frozen=True)
@@ -76,6 +77,10 @@ class Course:
         slope = np.gradient(self.centre_y_m, self.centre_x_m)
         y = np.interp(x_m, self.centre_x_m, self.centre_y_m)
         return y, np.arctan(np.interp(x_m, self.centre_x_m, slope))
+
+    def path(self) -> ReferencePath:
+        """The centre line as a path to follow (``controller.reference: path``)."""
+        return ReferencePath.from_points(self.centre_x_m, self.centre_y_m)
 
     def as_arrays(self) -> dict[str, np.ndarray]:
         """The course as arrays (for ``course_<reference>.npz``, which the report draws)."""

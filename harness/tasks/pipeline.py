@@ -265,6 +265,7 @@ class Pipeline:
                     figure_path=output_dir / f"{stem}.png",
                     arrays_path=output_dir / f"{stem}.npz",
                     tab_priority=2 if name in courses else 1,  # the recording opens on a course
+                    path=courses[name].path() if name in courses else None,
                 )
                 if name in courses:
                     metrics["path"] = {
