@@ -22,6 +22,9 @@ TINY = [
     "data.start_speed_mps=[0,0]",  # from rest: the drives barely move (the baseline says so)
     "recorder=none",
     "~reference@task.references.double_lane_change",  # the test drive only
+    # Path followers track states where there is no course: the same run twice here.
+    "~controller@task.extra_controllers.de_mpc_path",
+    "~controller@task.extra_controllers.bicycle_mpc_path",
 ]
 
 
@@ -229,8 +232,14 @@ def test_the_lane_change_is_judged_on_its_course(edmd_run) -> None:
         "learner=edmd",
         f"task.model_path={run_dir}/model_edmd.pt",
         "+reference@task.references.lane_change=double_lane_change",  # TINY removed the default
+        "+controller@task.extra_controllers.follower=de_mpc_path",  # TINY removed de_mpc_path
     )
     run = metrics["tracking"]["references"]["lane_change"]
+    assert not run["follows_path"]  # de_mpc tracks the states
+    followed = metrics["tracking"]["controllers"]["follower"]
+    assert followed["lane_change"]["follows_path"]  # on the course it steers by the path
+    (drive,) = (followed[label] for label in followed if label.startswith("test_episode"))
+    assert not drive["follows_path"]  # a test drive has no path: its states are tracked
     path = run["path"]
     assert path["cones"] == 50 and 0 <= path["cones_hit"] <= 50
     assert path["passed"] == (path["reached_exit"] and path["cones_hit"] == 0)
