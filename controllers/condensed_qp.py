@@ -125,17 +125,22 @@ class CondensedQP:
     # ---- built once per model -------------------------------------------------------------
 
     def _build_prediction(self, A: np.ndarray, B: np.ndarray, C: np.ndarray) -> None:
-        """Φz, Φv, Θ of eq. (18) from the step responses S_l = Σ_{q<l} A^q B."""
+        """Φz, Φv, Θ of eq. (18) from the step responses S_l = Σ_{q<l} A^q B; and Φw, the
+        outputs' response to a constant disturbance w added to every step (offset-free)."""
         n, m, N, Np, Nc = self.n, self.m, self.N, self.Np, self.Nc
         power = np.eye(N)
         step = np.zeros((N, m))
-        phi_z, step_out = [], [np.zeros((n, m))]  # C S_0 = 0
+        powers = np.zeros((N, N))
+        phi_z, phi_w, step_out = [], [], [np.zeros((n, m))]  # C S_0 = 0
         for _ in range(Np):
             step = step + power @ B
+            powers = powers + power
             power = A @ power
             phi_z.append(C @ power)
+            phi_w.append(C @ powers)
             step_out.append(C @ step)
         self.phi_z = np.vstack(phi_z)  # (n Np, N): y_i from z_t
+        self.phi_w = np.vstack(phi_w)  # (n Np, N): y_i from w in z_{k+1} = A z_k + B v_k + w
         self.phi_v = np.vstack(step_out[1:])  # (n Np, m): y_i from holding v_{t-1}
         theta = np.zeros((Np, n, Nc, m))
         for i in range(1, Np + 1):  # y_i depends on Δv_j for j < i through C S_{i-j}

@@ -87,6 +87,10 @@ class DEMPCConfig:
     # reference=path: diagonal weights on (vx, vy, yaw rate) errors, normalized as Q's, then on
     # the lateral error (per m²) and heading error (per rad²) to the path.
     Q_path: Any = (1000.0, 0.0, 300.0, 30.0, 300.0)
+    # Offset-free tracking: a constant disturbance w in the model's step, z⁺ = f(z, v) + w,
+    # estimated from each step's one-step prediction error, w += gain · (z − ẑ).
+    offset_free: bool = False
+    offset_free_gain: float = 0.2
 
     def __post_init__(self) -> None:
         _check_types(self)
@@ -104,6 +108,10 @@ class DEMPCConfig:
             raise ValueError(
                 f"controller.reference must be one of {', '.join(REFERENCES)} "
                 f"(got {self.reference!r})"
+            )
+        if not 0 < self.offset_free_gain <= 1:
+            raise ValueError(
+                f"controller.offset_free_gain must be in (0, 1] (got {self.offset_free_gain})"
             )
         _check_qp_size(int(self.Np), int(self.Nc))
         self.weights()
@@ -213,9 +221,12 @@ class DEMPC:
         self.qp: CondensedQP
         if self.linearization is None:
             self.qp = CondensedQP(A, B, C, **settings)
+            self._linear_step = (A, B)
         else:
             self.qp = TimeVaryingQP(C, INPUTS, **settings)
         self.C = C
+        self.offset_free = bool(config.offset_free)
+        self.offset_free_gain = float(config.offset_free_gain)
         self.frenet: FrenetOutputs | None = None
         self.path_qp: TimeVaryingQP | None = None
         if config.reference == "path":
@@ -264,6 +275,8 @@ class DEMPC:
         self._v_prev = self.normalizer.inputs(np.clip(u, self.u_min, self.u_max))
         self._plan: np.ndarray | None = None
         self._plan_step = 0
+        self._disturbance = np.zeros(self.C.shape[1])
+        self._z_expected: np.ndarray | None = None
         self.qp.reset()
         if self.path_qp is not None:
             self.path_qp.reset()
@@ -286,21 +299,29 @@ class DEMPC:
         z = np.asarray(self.model.lift(x), dtype=float)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
         v_prev = self._v_prev
+        w = self._estimate_disturbance(z)
         qp: CondensedQP = self.qp
+        shift = np.zeros_like(y_ref)  # the LTI prediction's response to w (offset-free)
         if self._path is not None and self.path_qp is not None:
             if pose is None:
                 raise ValueError("a DE-MPC run that follows a path needs the car's pose in act()")
             qp = self.path_qp
             y_ref = self._path_reference(x, pose, y_ref)
-            solution = self._solve_path(z, v_prev, y_ref)
+            solution = self._solve_path(z, v_prev, y_ref, w)
         elif self.linearization is None:
+            if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
+                shift = self.qp.phi_w @ w
+                y_ref = y_ref - shift
             solution = self.qp.solve(z, v_prev, y_ref)
         else:
             states_qp = self.qp
             assert isinstance(states_qp, TimeVaryingQP)
             with single_threaded():  # small products: one BLAS thread is fastest (blas.py)
                 solution = self._solve_time_varying(
-                    z, v_prev, states_qp.set_model, lambda: states_qp.solve(z, v_prev, y_ref)
+                    z,
+                    v_prev,
+                    lambda A, B, d: states_qp.set_model(A, B, _plus(d, w)),
+                    lambda: states_qp.solve(z, v_prev, y_ref),
                 )
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
@@ -314,17 +335,38 @@ class DEMPC:
                 solution.status,
             )
         self._v_prev = plan[0]
+        if w is not None:
+            self._z_expected = self._model_step(z, plan[0]) + w
         # The whole plan converts at the cost of its first move (elementwise, same bits).
         planned_inputs = self.normalizer.inputs_inverse(plan)
         u = np.clip(planned_inputs[0], self.u_min, self.u_max)
         info = StepInfo(
-            predicted_states=self.normalizer.states_inverse(qp.predict(z, v_prev, dv)[:, :STATES]),
+            predicted_states=self.normalizer.states_inverse(
+                qp.predict(z, v_prev, dv)[:, :STATES] + shift.reshape(self.Np, -1)[:, :STATES]
+            ),
             planned_inputs=planned_inputs,
             solve_path=solution.path,
             fallback=not solution.ok,
             follows_path=self._path is not None,
         )
         return u, info
+
+    def _estimate_disturbance(self, z: np.ndarray) -> np.ndarray | None:
+        """Offset-free: w moved by a share (``offset_free_gain``) of the last step's one-step
+        prediction error z − ẑ (ẑ with w), so a constant model error is learned and predicted
+        away; None when off."""
+        if not self.offset_free:
+            return None
+        if self._z_expected is not None:
+            self._disturbance = self._disturbance + self.offset_free_gain * (z - self._z_expected)
+        return self._disturbance
+
+    def _model_step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """The model's own next lifted state (no disturbance)."""
+        if self.linearization is None:
+            A, B = self._linear_step
+            return A @ z + B @ v
+        return np.asarray(self.linearization.step(z, v), dtype=float)
 
     def _path_reference(self, x: np.ndarray, pose: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
         """Locate the car on the path; the path QP's references (5 Np,): the reference's speed
@@ -343,9 +385,12 @@ class DEMPC:
         errors_ref = np.zeros((self.Np, ERRORS))
         return np.hstack([self.normalizer.states(states_ref), errors_ref]).ravel()
 
-    def _solve_path(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
-        """The path QP on the model's prediction (its own, linearised as in state tracking)
-        extended by the errors to the path (``controllers/path_following.py``)."""
+    def _solve_path(
+        self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray, w: np.ndarray | None
+    ) -> QPSolution:
+        """The path QP on the model's prediction (its own, linearised as in state tracking,
+        with the disturbance w where offset-free) extended by the errors to the path
+        (``controllers/path_following.py``)."""
         assert self.frenet is not None and self.path_qp is not None
         frenet, path_qp, states_qp = self.frenet, self.path_qp, self.qp
         y0 = self.C @ z
@@ -354,14 +399,17 @@ class DEMPC:
             path_qp.set_prediction(*frenet.extend(theta, free, y0, *self._frenet_now))
 
         if self.linearization is None:
-            set_prediction(states_qp.theta, states_qp.free_response(z, v_prev))
+            free = states_qp.free_response(z, v_prev)
+            set_prediction(states_qp.theta, free if w is None else free + states_qp.phi_w @ w)
             return path_qp.solve(z, v_prev, y_ref)
         assert isinstance(states_qp, TimeVaryingQP)
         with single_threaded():
             return self._solve_time_varying(
                 z,
                 v_prev,
-                lambda A, B, d: set_prediction(*states_qp.model_prediction(A, B, d, z, v_prev)),
+                lambda A, B, d: set_prediction(
+                    *states_qp.model_prediction(A, B, _plus(d, w), z, v_prev)
+                ),
                 lambda: path_qp.solve(z, v_prev, y_ref),
             )
 
@@ -405,6 +453,13 @@ class DEMPC:
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
         return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
+
+
+def _plus(d: np.ndarray | None, w: np.ndarray | None) -> np.ndarray | None:
+    """A model's affine term d (K, N) (or none) with the disturbance w (N,) added."""
+    if w is None:
+        return d
+    return w[None] if d is None else d + w
 
 
 def _rollout(model: LinearizableModel, z: np.ndarray, inputs: np.ndarray) -> np.ndarray:
