@@ -41,6 +41,8 @@ from harness.recorder import Recorder
 from harness.references.path import ReferencePath
 from harness.rollout import Trajectory, closed_loop
 
+FINAL_ERROR_S = 0.5  # the end of a run over which ``final_error`` averages (s)
+
 
 @dataclass
 class TrackingTrajectory(Trajectory):
@@ -140,12 +142,16 @@ def load_run(path: Path) -> TrackingTrajectory:
 
 
 def tracking_metrics(run: TrackingTrajectory, dt: float, solver_failures: int) -> dict[str, Any]:
-    """RMSE per state (SI), solve-time statistics (ms), deadline misses and failures."""
+    """RMSE per state (SI), the error the run ends with (mean |x − reference| over its last
+    ``FINAL_ERROR_S``: the offset a model error leaves), solve-time statistics (ms), deadline
+    misses and failures."""
     error = run.states - run.reference
     rmse = np.sqrt(np.mean(error**2, axis=0))
+    final = np.mean(np.abs(error[-max(1, round(FINAL_ERROR_S / dt)) :]), axis=0)
     solve_ms = run.solve_time_s * 1e3
     return {
         "rmse": dict(zip(STATE_NAMES, rmse.tolist(), strict=True)),
+        "final_error": dict(zip(STATE_NAMES, final.tolist(), strict=True)),
         "solve_time_ms": {
             "median": float(np.median(solve_ms)),
             "p99": float(np.percentile(solve_ms, 99)),

@@ -44,5 +44,5 @@ def test_the_disturbance_estimate_removes_the_steady_offset(model: LiftedModel) 
 
 
 def test_the_gain_must_be_a_share() -> None:
-    with pytest.raises(ValueError, match="controller.offset_free_gain"):
+    with pytest.raises(ValueError, match=r"controller\.offset_free_gain"):
         DEMPCConfig(offset_free=True, offset_free_gain=1.5)

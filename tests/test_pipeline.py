@@ -22,7 +22,10 @@ TINY = [
     "data.start_speed_mps=[0,0]",  # from rest: the drives barely move (the baseline says so)
     "recorder=none",
     "~reference@task.references.double_lane_change",  # the test drive only
-    # Path followers track states where there is no course: the same run twice here.
+    # Path followers track states where there is no course: the same run twice here; offset-free
+    # tracking has its own tests.
+    "~controller@task.extra_controllers.de_mpc_offset_free",
+    "~controller@task.extra_controllers.bicycle_mpc_offset_free",
     "~controller@task.extra_controllers.de_mpc_path",
     "~controller@task.extra_controllers.bicycle_mpc_path",
 ]
@@ -236,6 +239,7 @@ def test_the_lane_change_is_judged_on_its_course(edmd_run) -> None:
     )
     run = metrics["tracking"]["references"]["lane_change"]
     assert not run["follows_path"]  # de_mpc tracks the states
+    assert set(run["final_error"]) == {"vx", "vy", "yaw_rate"}
     followed = metrics["tracking"]["controllers"]["follower"]
     assert followed["lane_change"]["follows_path"]  # on the course it steers by the path
     (drive,) = (followed[label] for label in followed if label.startswith("test_episode"))
