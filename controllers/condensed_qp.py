@@ -521,7 +521,8 @@ class TimeVaryingQP(CondensedQP):
         if theta.shape != shape or free.shape != shape[:1]:
             raise ValueError(f"prediction must be Θ {shape} and free ({shape[0]},)")
         self._given_free = free
-        self._set_theta(theta)
+        if not np.array_equal(theta, self.theta):  # the same Θ keeps its Hessian and dual
+            self._set_theta(theta)
 
     def _set_theta(self, theta: np.ndarray) -> None:
         """Θ, and what follows from it: the Hessian, its factor and the unconstrained gain."""

@@ -48,6 +48,8 @@ LINEARIZATIONS = ("plan", "frozen")
 # What the cost follows: the reference's states (the paper's), or a run's path when it has one
 # (lateral and heading error, controllers/path_following.py; state tracking where it has none).
 REFERENCES = ("states", "path")
+# Path following: the speed in the error kinematics, to this band (m/s): 1 % at 80 km/h.
+SPEED_BAND_MPS = 0.25
 
 
 @dataclass(frozen=True)
@@ -90,7 +92,7 @@ class DEMPCConfig:
     # Offset-free tracking: a constant disturbance w in the model's step, z⁺ = f(z, v) + w,
     # estimated from each step's one-step prediction error, w += gain · (z − ẑ).
     offset_free: bool = False
-    offset_free_gain: float = 0.2
+    offset_free_gain: float = 1.0
 
     def __post_init__(self) -> None:
         _check_types(self)
@@ -379,7 +381,15 @@ class DEMPC:
         speed = float(x[0])
         ahead = frenet.station_m + speed * self.dt * np.arange(self.Np + 1)
         curvature = self._path.curvature_at(ahead)
-        self._frenet_now = (frenet.lateral_error_m, frenet.heading_error_rad, speed, curvature[:-1])
+        # The kinematics' v̄ to SPEED_BAND_MPS: Θ depends on nothing else for a lifted-linear
+        # model, so its path QP (Hessian, dual) is rebuilt only when the speed changes band.
+        banded = SPEED_BAND_MPS * round(speed / SPEED_BAND_MPS)
+        self._frenet_now = (
+            frenet.lateral_error_m,
+            frenet.heading_error_rad,
+            banded,
+            curvature[:-1],
+        )
         states_ref = self.normalizer.states_inverse(y_ref.reshape(self.Np, STATES))
         states_ref[:, 2] = speed * curvature[1:]
         errors_ref = np.zeros((self.Np, ERRORS))
