@@ -21,7 +21,7 @@ from harness.tasks.pipeline import _not_lifted_linear
 from harness.tracking import track
 from learners import DNN
 from learners.base import load as load_learner
-from learners.nets import mlp_apply
+from learners.nets import Dense, NumpyMLP, mlp_apply
 from tests.toydata import drive_episodes
 
 
@@ -76,7 +76,7 @@ def test_the_jacobians_equal_finite_differences_and_torch_func(dnn: DNN) -> None
             np.testing.assert_allclose(B[k][:, j], column, atol=1e-7)
     # The specification: torch.func's reverse-mode Jacobians of the network, batched.
     layers = [
-        type(layer)(layer.weight.double(), layer.bias.double(), layer.activation)
+        Dense(layer.weight.double(), layer.bias.double(), layer.activation)
         for layer in dnn.params_.layers("model")
         if layer.bias is not None
     ]
@@ -161,3 +161,31 @@ def test_de_mpc_tracks_a_reference_the_dnn_can_drive_on_the_dnn_itself(
     )
     assert metrics["solver_failures"] == 0 and metrics["steps"] == len(reference) - 1
     assert all(np.isfinite(value) for value in metrics["rmse"].values())
+
+
+@pytest.mark.parametrize("activation", ["relu", "sigmoid", "linear"])
+def test_numpy_mlp_is_the_torch_network_and_its_jacobian_is_torch_funcs(activation: str) -> None:
+    generator = torch.Generator().manual_seed(0)
+    widths = [5, 8, 6, 3]
+    layers = [
+        Dense(
+            torch.randn(widths[i + 1], widths[i], generator=generator, dtype=torch.float64),
+            torch.randn(widths[i + 1], generator=generator, dtype=torch.float64),
+            activation if i < 2 else "linear",
+        )
+        for i in range(3)
+    ]
+    network = NumpyMLP(layers, 3)
+    rng = np.random.default_rng(1)
+    z, v = rng.normal(size=(4, 3)), rng.normal(size=(4, 2))
+    expected = mlp_apply(layers, torch.from_numpy(np.hstack([z, v]))).numpy()
+    np.testing.assert_allclose(network(z, v), expected, atol=1e-12)
+    out, jz, jv = network.jacobian(z, v)
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+
+    def forward(zk: torch.Tensor, vk: torch.Tensor) -> torch.Tensor:
+        return mlp_apply(layers, torch.cat([zk, vk]))
+
+    tz, tv = vmap(jacrev(forward, argnums=(0, 1)))(torch.from_numpy(z), torch.from_numpy(v))
+    np.testing.assert_allclose(jz, tz.numpy(), atol=1e-12)
+    np.testing.assert_allclose(jv, tv.numpy(), atol=1e-12)
