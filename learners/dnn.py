@@ -11,6 +11,13 @@ The paper's indices (x_{i+1} - M(x_hat_i)) are read as this rollout: each predic
 back, and every predicted step is compared with the measured state. :func:`dnn_loss_terms` is the
 definition in plain autograd; training uses :func:`dnn_step`, the same loss with a hand-written
 back-propagation through time (tests check they agree).
+
+Fitted, the DNN is a :class:`~harness.interfaces.LinearizableModel` in the normalized state
+(z = x_norm, C_ = I, step = M or z + M): the time-varying DE-MPC linearises it along its plan,
+A_k = ∂step/∂z, B_k = ∂step/∂v at every point of the horizon at once (``controller=dnn_mpc``,
+or any DE-MPC config). A ReLU network is piecewise affine, so each linearisation is exact in
+the region of its point. The controller reads a float64 NumPy copy of the network
+(:class:`~learners.nets.NumpyMLP`), made after training or loading.
 """
 
 from __future__ import annotations
@@ -19,10 +26,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 
+from harness.data.episode import Episode
 from learners.base import check_int, check_nonnegative
-from learners.nets import Dense, LayerSpec, mlp_apply, mlp_forward, mlp_specs
+from learners.nets import Dense, LayerSpec, NumpyMLP, mlp_apply, mlp_forward, mlp_specs
 from learners.trained import TrainedLearner
 from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
@@ -188,6 +197,8 @@ class DNN(TrainedLearner):
     """
 
     name: ClassVar[str] = "dnn"
+    C_: np.ndarray  # (n, n) = I: the lifted state is the normalized state
+    _mlp: NumpyMLP
 
     def __init__(
         self,
@@ -231,3 +242,34 @@ class DNN(TrainedLearner):
             x_hat = x_hat + step if self.residual else step
             out[:, k + 1] = x_hat
         return out
+
+    def _after_training(self, train: Sequence[Episode]) -> None:
+        self._for_control()
+
+    def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
+        super()._set_state(state)
+        self._for_control()
+
+    def _for_control(self) -> None:
+        """C_ and the float64 network the controller reads (the nominal one: no random layer,
+        whose mean is the identity)."""
+        n = self.normalizer_.state_min.shape[0]
+        self.C_ = np.eye(n)
+        self._mlp = NumpyMLP(self.params_.layers("model"), n)
+
+    # -- the LinearizableModel contract (normalized units) ----------------------------------
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.normalizer_.states(np.asarray(x, dtype=float)), dtype=float)
+
+    def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        out = self._mlp(z, v)
+        return z + out if self.residual else out
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        out, A, B = self._mlp.jacobian(z, v)
+        if self.residual:  # z⁺ = z + M(z, v)
+            out = out + z
+            A = A + np.eye(z.shape[1])
+        d = out - (A @ z[:, :, None])[:, :, 0] - (B @ v[:, :, None])[:, :, 0]
+        return A, B, d

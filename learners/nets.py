@@ -9,6 +9,12 @@ matching views of one flat gradient buffer, so that Adam updates a single tensor
 autograd versions of every loss (``*_loss_terms`` in the learner modules) remain the
 specification: the tests check the two agree to float32 rounding.
 
+For control (a trained network as the model of an MPC, every 10 ms), :class:`NumpyMLP` holds
+the layers as float64 NumPy arrays: one point's forward is ~30 µs (torch: ~60 µs), and the
+Jacobians at every point of a horizon are one chain-rule product per layer over all points,
+~10x faster than ``torch.func.vmap(jacrev(...))`` (0.2 vs 2.2 ms at 10 points, 0.7 vs 10 ms
+at 60 on one core); the tests check it against ``torch.func`` and finite differences.
+
 Initialization is PyTorch's default for ``nn.Linear`` and the paper's: weights and biases uniform
 in [-1/sqrt(fan_in), 1/sqrt(fan_in)] (Goodfellow et al.'s heuristic, which the paper cites with
 "a" the number of inputs of the layer).
@@ -20,12 +26,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 __all__ = [
     "Dense",
     "FlatParameters",
     "LayerSpec",
+    "NumpyMLP",
     "mlp_apply",
     "mlp_backward",
     "mlp_forward",
@@ -209,3 +217,81 @@ def mlp_apply(layers: Sequence[Dense], x: torch.Tensor) -> torch.Tensor:
         elif layer.activation == "sigmoid":
             x = torch.sigmoid(x)
     return x
+
+
+class NumpyMLP:
+    """A trained network y = M(z, v) in float64 NumPy: its value and its Jacobians, for control.
+
+    The first layer's inputs are split into ``z`` (the first ``state_width`` columns) and ``v``
+    (the rest), so a caller never concatenates. The layers are copied: later training does not
+    reach this object.
+    """
+
+    def __init__(self, layers: Sequence[Dense], state_width: int) -> None:
+        if any(layer.weight.dim() != 2 for layer in layers):
+            raise ValueError("NumpyMLP takes shared weights, not one layer per batch row")
+        weights = [layer.weight.detach().double().numpy() for layer in layers]
+        self.biases = [
+            np.zeros(w.shape[0]) if layer.bias is None else layer.bias.detach().double().numpy()
+            for w, layer in zip(weights, layers, strict=True)
+        ]
+        self.activations = [layer.activation for layer in layers]
+        self.weights = [np.ascontiguousarray(w) for w in weights]
+        # Row-vector products a @ Wᵀ with contiguous Wᵀ; the first layer split into z and v.
+        self.transposed = [np.ascontiguousarray(w.T) for w in weights]
+        self.first_z = self.transposed[0][:state_width]
+        self.first_v = self.transposed[0][state_width:]
+        self.state_width = state_width
+
+    def __call__(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """M(z, v) for z (..., state_width), v (..., inputs) -> (..., out)."""
+        a = z @ self.first_z + v @ self.first_v + self.biases[0]
+        _activate(a, self.activations[0], slope=False)
+        for w_t, b, activation in zip(
+            self.transposed[1:], self.biases[1:], self.activations[1:], strict=True
+        ):
+            a = a @ w_t
+            a += b
+            _activate(a, activation, slope=False)
+        return a
+
+    def jacobian(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(M, ∂M/∂z, ∂M/∂v) at K points z (K, state_width), v (K, inputs): (K, out),
+        (K, out, state_width), (K, out, inputs).
+
+        Reverse mode (the output is the narrow side): ∂M/∂(z, v) = D_L W_L ⋯ D_1 W_1 with
+        D_l the activation's derivative at layer l (ReLU: its on/off mask), one product of the
+        (K·out) rows with each layer's W over all K points.
+        """
+        a = z @ self.first_z + v @ self.first_v + self.biases[0]
+        slopes = [_activate(a, self.activations[0], slope=True)]
+        for w_t, b, activation in zip(
+            self.transposed[1:], self.biases[1:], self.activations[1:], strict=True
+        ):
+            a = a @ w_t
+            a += b
+            slopes.append(_activate(a, activation, slope=True))
+        points, out = a.shape
+        rows = np.broadcast_to(self.weights[-1], (points, *self.weights[-1].shape))
+        if slopes[-1] is not None:
+            rows = slopes[-1][:, :, None] * rows
+        for w, slope in zip(self.weights[-2::-1], slopes[-2::-1], strict=True):
+            if slope is not None:
+                rows = rows * slope[:, None, :]
+            rows = (rows.reshape(points * out, -1) @ w).reshape(points, out, -1)
+        return a, rows[:, :, : self.state_width], rows[:, :, self.state_width :]
+
+
+def _activate(a: np.ndarray, activation: str, *, slope: bool) -> np.ndarray | None:
+    """Apply ``activation`` to ``a`` in place; with ``slope``, return its derivative there
+    (None: 1, the linear layer's, or not asked)."""
+    if activation == "relu":
+        np.maximum(a, 0.0, out=a)
+        return a > 0.0 if slope else None
+    if activation == "sigmoid":
+        np.negative(a, out=a)
+        np.exp(a, out=a)
+        a += 1.0
+        np.reciprocal(a, out=a)
+        return a * (1.0 - a) if slope else None
+    return None

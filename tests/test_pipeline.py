@@ -161,16 +161,22 @@ def test_deep_edmd_runs_the_whole_pipeline_on_a_tiny_budget(tmp_path: Path) -> N
     assert all(np.isfinite(v) for v in tracking["rmse"].values())
 
 
-def test_a_non_koopman_learner_skips_tracking_and_says_why(tmp_path: Path) -> None:
+def test_the_dnn_is_tracked_through_its_linearisation(tmp_path: Path) -> None:
     metrics = run_main(
         tmp_path,
         tmp_path / "dnn",
         "learner=dnn",
         "learner.training.max_steps=20",
         "learner.training.eval_every_steps=10",
+        "controller=dnn_mpc",
     )
-    assert "not a lifted-linear model" in metrics["tracking"]["skipped"]
-    assert "not a lifted model" in metrics["spectrum"]["skipped"]
+    tracking = metrics["tracking"]
+    assert "skipped" not in tracking and tracking["solver_failures"] == 0
+    assert list(tracking["controllers"]) == ["dnn_mpc", "bicycle_mpc"]  # the learner's first
+    assert all(np.isfinite(v) for v in tracking["rmse"].values())
+    assert set(tracking["solve_time_ms"]) == {"median", "p99", "max"}
+    assert tracking["horizon"] == {"Np": 10, "Nc": 7}
+    assert "not a lifted model" in metrics["spectrum"]["skipped"]  # no A_ to take eigenvalues of
     assert len(metrics["prediction"]["step_response"]) == 8  # every learner meets the steps
 
 
