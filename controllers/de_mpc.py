@@ -349,7 +349,7 @@ class DEMPC:
             planned_inputs=planned_inputs,
             solve_path=solution.path,
             fallback=not solution.ok,
-            follows_path=self._path is not None,
+            follows_path=self.follows_path,
         )
         return u, info
 
