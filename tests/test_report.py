@@ -168,7 +168,13 @@ def test_rows_are_named_by_the_jobs_choices_not_by_their_command_lines(tmp_path:
     rmse = {"vx": 1.0, "vy": 2.0, "yaw_rate": 3.0}
     tracking = {
         "reference": "lane/episode_0002",
-        "references": {"lane/episode_0002": {"rmse": rmse}, "alpha": {"rmse": rmse}},
+        "references": {
+            "lane/episode_0002": {
+                "rmse": rmse,
+                "final_error": {"vx": 0.5, "vy": 0.25, "yaw_rate": 0.125},
+            },
+            "alpha": {"rmse": rmse},  # written before final_error existed
+        },
     }
     choices = {"learner": "dnn", "plant": "sedan_wet", "controller": "de_mpc_long"}
     for seed in (3, 4):
@@ -194,6 +200,8 @@ def test_rows_are_named_by_the_jobs_choices_not_by_their_command_lines(tmp_path:
         ["dnn", "de_mpc_long", "?/?", "lane"],
         ["dnn", "de_mpc_long", "?/?", "alpha"],
     ]
+    # the error each run ended with (the mean of the jobs), "—" where a run has none
+    assert [row.split(",")[9] for row in tracking_rows] == ["0.5 / 0.25 / 0.125", "— / — / —"]
 
 
 def test_the_course_tables_judge_every_run_on_its_course_and_name_the_highest_speed() -> None:

@@ -44,6 +44,12 @@ def _mean_std(values: Iterable[float | None]) -> str:
     return f"{mean:.4g} ± {std:.2g}"
 
 
+def _mean(values: Iterable[float | None]) -> str:
+    """The mean to 3 significant digits; "—" when no job has the value (older runs)."""
+    present = [float(v) for v in values if v is not None and math.isfinite(v)]
+    return f"{sum(present) / len(present):.3g}" if present else "—"
+
+
 def _get(tree: Mapping[str, Any] | None, *keys: str) -> Any:
     for key in keys:
         if not isinstance(tree, Mapping) or key not in tree:
@@ -117,6 +123,7 @@ def tracking_table(jobs: list[Run]) -> Table:
             "variant",
             "jobs",
             *STATES,
+            "final error vx / vy / r",
             "solve median",
             "solve p99",
             "solve max",
@@ -148,6 +155,7 @@ def tracking_table(jobs: list[Run]) -> Table:
         table.rows.append(
             [*key, str(len(members))]
             + [_mean_std(_get(m, "rmse", s) for m in members) for s in STATES]
+            + [" / ".join(_mean(_get(m, "final_error", s) for m in members) for s in STATES)]
             + [
                 _mean_std(_get(m, "solve_time_ms", q) for m in members)
                 for q in ("median", "p99", "max")
