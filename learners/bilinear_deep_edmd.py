@@ -121,7 +121,7 @@ class _BilinearObjective(_Objective):
                 self.grad_a.add_(grads[0])
                 if self.bilinear is not None and self.bilinear.grad_h is not None:
                     self.bilinear.grad_h.add_(grads[1])
-        return loss + float(penalty)
+        return loss + float(penalty.detach())
 
     def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
         terms = super().validate(x, v)
