@@ -561,8 +561,9 @@ def test_h_starts_at_zero_from_deep_edmds_initial_network_and_training_moves_it(
         model.v0_,
     )
     expected = data["normalizer"].states_inverse(z @ model.C_.T)
+    # float32 encoder: lift(x0) of one state and of predict's batch may round differently
     np.testing.assert_allclose(
-        model.predict(episode.states[0], inputs)[1:], expected[1:], atol=1e-9
+        model.predict(episode.states[0], inputs)[1:], expected[1:], rtol=1e-5, atol=1e-6
     )
     # the refit replaces the trained operator, on the network trained through H
     refit = small_bilinear(bilinear_refit="lstsq").fit(*args)
