@@ -34,7 +34,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
@@ -189,6 +189,12 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
             ridge_prior=ridge_prior,
             stability=asdict(self.stability),
         )
+
+    @classmethod
+    def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
+        """A model file's learner; files written before ``bilinear_training`` existed hold a
+        network trained as Deep EDMD's (no H among its parameters) and the refit."""
+        return cls(**{"bilinear_training": False, **hyperparameters})
 
     def _specs(self, n: int, m: int) -> list[LayerSpec]:
         specs = super()._specs(n, m)

@@ -658,3 +658,17 @@ def test_a_bilinear_deep_edmd_trained_through_h_saves_and_loads_whole(
         loaded.predict(episode.states[0], episode.inputs[:100]),
         model.predict(episode.states[0], episode.inputs[:100]),
     )
+
+
+def test_a_model_file_from_before_bilinear_training_loads_as_trained_then() -> None:
+    """Files written before the key existed hold Deep EDMD's network and the refit."""
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD
+
+    old = {
+        k: v
+        for k, v in BilinearDeepEDMD(bilinear_training=False).hyperparameters.items()
+        if k not in ("bilinear_training", "bilinear_refit", "stability")
+    }
+    learner = BilinearDeepEDMD.from_hyperparameters(old)
+    assert not learner.bilinear_training and learner.bilinear_refit == "lstsq"
+    assert BilinearDeepEDMD().bilinear_training  # a new model trains through H
