@@ -1,17 +1,27 @@
-"""Bilinear Deep EDMD: Deep EDMD's learned observables with a bilinear Koopman operator.
-
-The encoder and decoder are trained exactly as :class:`learners.deep_edmd.DeepEDMD` (the
-paper's losses, its linear A and B inside them). After training, the operator is refitted on
-the lifted training pairs as bilinear EDMD does on its fixed dictionary
-(:mod:`learners.bilinear`)::
+"""Bilinear Deep EDMD: Deep EDMD's learned observables with a bilinear Koopman operator::
 
     z_{k+1} = A z_k + B v_k + sum_j (v_kj - v0_j) H_j z_k,     z = [x_n; phi_e(x_n)]
 
-by ridge least squares toward the identity (``bilinear_ridge``, ``ridge_prior``): the input
-acts multiplied by the learned lifted state, so the steering gain can fall with speed, which
-one B cannot do. The encoder is not trained through the bilinear term: its observables are
-those that make the *linear* operator predict well. Training through it (the bilinear term in
-the multi-step losses) is the open part of the bilinear-learners issue.
+The input acts multiplied by the learned lifted state, so the steering gain can fall with
+speed, which one B cannot do (v0 and why vbar = v - v0: :mod:`learners.bilinear`).
+
+Training (``bilinear_training: true``): the paper's Deep EDMD losses (:mod:`learners.deep_edmd`)
+with this operator inside them: K^[i] z_0 of L_xx and L_xo is the bilinear rollout, and H
+(m, N, N) is trained with the encoder, decoder, A and B. H starts at zero, so training starts
+as Deep EDMD's, and the encoder learns observables for the bilinear operator. With
+``bilinear_training: false`` the network is trained exactly as Deep EDMD (linear A, B in the
+losses, bit for bit) and only the refit below adds H.
+
+Refit (``bilinear_refit: lstsq``): after training, A, B, H are replaced by the ridge least
+squares of the bilinear regression on the lifted training pairs, as bilinear EDMD fits its fixed
+dictionary (``bilinear_ridge``, ``ridge_prior``); ``none`` keeps the trained operator.
+
+Stability penalty (``stability``, :class:`StabilityPenalty`, off by default): MDK-Net's idea
+(Abtahi et al., arXiv 2503.03002) of penalising eigenvalues of A outside the unit circle, here
+``weight * sum_i max(0, |lambda_i| - radius)`` over the eigenvalues of A and of
+A + sum_j (c_j - v0_j) H_j at the 2^m corners c of the normalized input box, added to the
+training loss (its gradient by autograd through ``torch.linalg.eigvals``: the matrices are
+N x N, tiny beside the network).
 
 ``predict`` rolls the bilinear model out and reads it with the decoder or, by default here
 (``prediction_output: linear``), with C z, exactly what a bilinear MPC predicts with. The model
@@ -21,14 +31,16 @@ satisfies :class:`~harness.interfaces.BilinearModel` (``A_``, ``B_``, ``H_``, ``
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Any, ClassVar
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
 
 from harness.data.episode import Episode
-from learners.base import check, check_choice, check_nonnegative
+from learners.base import check, check_choice, check_nonnegative, check_positive
 from learners.bilinear import (
     RIDGE_PRIORS,
     BilinearOperator,
@@ -36,20 +48,105 @@ from learners.bilinear import (
     bilinear_regression_rows,
     bilinear_rollout,
 )
-from learners.deep_edmd import DeepEDMD
+from learners.deep_edmd import BilinearTerm, DeepEDMD, _Objective
 from learners.linalg import ridge_lstsq, row_chunks
-from learners.nets import Dense, mlp_apply
+from learners.nets import Dense, LayerSpec, mlp_apply
+from learners.training import block
 
-__all__ = ["BilinearDeepEDMD"]
+__all__ = ["BilinearDeepEDMD", "StabilityPenalty", "stability_penalty"]
+
+REFITS = ("lstsq", "none")
+
+
+@dataclass(frozen=True)
+class StabilityPenalty:
+    """The schema of ``learner.stability`` (module docstring).
+
+    ``weight``: loss per unit of eigenvalue magnitude above ``radius``, in the units of the data
+    terms (squared normalized state); 0 switches the penalty off. ``radius``: the magnitude
+    eigenvalues are allowed up to (dimensionless, per 10 ms step; 1 is the unit circle).
+    """
+
+    weight: float = 0.0
+    radius: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_nonnegative("stability.weight", self.weight)
+        check_positive("stability.radius", self.radius)
+
+
+def stability_penalty(
+    a: torch.Tensor, h: torch.Tensor | None, v0: torch.Tensor, radius: float
+) -> torch.Tensor:
+    """sum_i max(0, |lambda_i| - radius) over A's eigenvalues and, with ``h`` (m, N, N), those
+    of A + sum_j (c_j - v0_j) H_j at every corner c in {0, 1}^m of the normalized input box
+    (where the bilinear model's modes move farthest). Differentiable by autograd."""
+    matrices = a.unsqueeze(0)
+    if h is not None:
+        corners = torch.tensor(list(itertools.product((0.0, 1.0), repeat=h.shape[0])))
+        held = a + torch.einsum("cj,jnk->cnk", (corners - v0).to(a.dtype), h)
+        matrices = torch.cat([matrices, held])
+    magnitudes = torch.linalg.eigvals(matrices).abs()
+    return torch.relu(magnitudes - radius).sum()
+
+
+class _BilinearObjective(_Objective):
+    """Deep EDMD's objective with the bilinear term in its rollout and the stability penalty."""
+
+    def __init__(self, learner: BilinearDeepEDMD) -> None:
+        views, grads = learner.params_.views(), learner.params_.views(learner.params_.grad)
+        m = learner.normalizer_.input_min.shape[0]
+        v0 = torch.from_numpy(learner.v0_.astype(np.float32))
+        term = None
+        if learner.bilinear_training:
+            size = views["koopman.A.weight"].shape[0]
+            h, grad_h = (g["koopman.H.weight"].view(m, size, size) for g in (views, grads))
+            term = BilinearTerm(h, v0, grad_h)
+        super().__init__(learner, term)
+        self.v0 = v0
+        self.penalty = learner.stability
+
+    def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
+        loss = super().train_step(x, v, step)
+        if not self.penalty.weight:
+            return loss
+        a = self.a.detach().clone().requires_grad_()
+        h = None if self.bilinear is None else self.bilinear.h.detach().clone().requires_grad_()
+        penalty = self.penalty.weight * stability_penalty(a, h, self.v0, self.penalty.radius)
+        if penalty.item() > 0.0:
+            grads = torch.autograd.grad(penalty, [a] if h is None else [a, h])
+            # nearly repeated eigenvalues can make the eigenvector gradient blow up: skip a step
+            # rather than write inf into the parameters (the data terms still train)
+            if all(bool(torch.isfinite(g).all()) for g in grads):
+                self.grad_a.add_(grads[0])
+                if self.bilinear is not None and self.bilinear.grad_h is not None:
+                    self.bilinear.grad_h.add_(grads[1])
+        return loss + float(penalty.detach())
+
+    def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
+        terms = super().validate(x, v)
+        if not self.penalty.weight:
+            return terms
+        h = None if self.bilinear is None else self.bilinear.h
+        with torch.no_grad():
+            value = float(stability_penalty(self.a, h, self.v0, self.penalty.radius))
+        terms["stability"] = value
+        terms["loss"] += self.penalty.weight * value
+        return terms
 
 
 class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
-    """Deep EDMD with a bilinear operator refitted after training (module docstring).
+    """Deep EDMD with a bilinear operator, trained through and/or refitted (module docstring).
 
     Args:
-        bilinear_ridge: Ridge of the bilinear least squares, relative to the mean squared
-            one-step residual (as EDMD's ``ridge``).
+        bilinear_training: Train H with the network, the bilinear term inside the losses
+            (false: Deep EDMD's training, bit for bit).
+        bilinear_refit: ``lstsq``: replace A, B, H by the bilinear least squares on the lifted
+            training data after training; ``none``: keep the trained operator.
+        bilinear_ridge: Ridge of that least squares, relative to the mean squared one-step
+            residual (as EDMD's ``ridge``).
         ridge_prior: What the ridge shrinks A toward: ``identity`` (default) or ``zero``.
+        stability: :class:`StabilityPenalty` keys (``weight`` 0: off).
         **deep_edmd: Every :class:`~learners.deep_edmd.DeepEDMD` argument.
     """
 
@@ -58,26 +155,71 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
     H_: np.ndarray
 
     def __init__(
-        self, bilinear_ridge: float = 1e-4, ridge_prior: str = "identity", **deep_edmd: Any
+        self,
+        bilinear_training: bool = True,
+        bilinear_refit: str = "lstsq",
+        bilinear_ridge: float = 1e-4,
+        ridge_prior: str = "identity",
+        stability: StabilityPenalty | Mapping[str, float] | None = None,
+        **deep_edmd: Any,
     ) -> None:
         deep_edmd.setdefault("prediction_output", "linear")
         super().__init__(**deep_edmd)
         check(
             not self.refit_koopman_lstsq,
             "refit_koopman_lstsq",
-            "false (the bilinear operator is refitted after training anyway)",
+            "false (bilinear_refit: lstsq refits the bilinear operator)",
             True,
         )
+        check(
+            isinstance(bilinear_training, bool),
+            "bilinear_training",
+            "true or false",
+            bilinear_training,
+        )
+        self.bilinear_training = bilinear_training
+        self.bilinear_refit = check_choice("bilinear_refit", bilinear_refit, REFITS)
         self.bilinear_ridge = check_nonnegative("bilinear_ridge", bilinear_ridge)
         self.ridge_prior = check_choice("ridge_prior", ridge_prior, RIDGE_PRIORS)
-        self._hyperparameters.update(bilinear_ridge=self.bilinear_ridge, ridge_prior=ridge_prior)
+        self.stability = block(StabilityPenalty, stability, "stability")
+        self._hyperparameters.update(
+            bilinear_training=self.bilinear_training,
+            bilinear_refit=self.bilinear_refit,
+            bilinear_ridge=self.bilinear_ridge,
+            ridge_prior=ridge_prior,
+            stability=asdict(self.stability),
+        )
+
+    @classmethod
+    def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
+        """A model file's learner; files written before ``bilinear_training`` existed hold a
+        network trained as Deep EDMD's (no H among its parameters) and the refit."""
+        return cls(**{"bilinear_training": False, **hyperparameters})
+
+    def _specs(self, n: int, m: int) -> list[LayerSpec]:
+        specs = super()._specs(n, m)
+        if not self.bilinear_training:
+            return specs
+        size = self.lifted_dim + (n if self.lifted_includes_state else 0)
+        # H (m, N, N) stored as an (m N, N) weight; last and zero, so that every other tensor
+        # gets Deep EDMD's initial values and training starts from Deep EDMD's model
+        return [*specs, LayerSpec("koopman.H", size, m * size, "linear", bias=False, init="zero")]
+
+    def _objective(self) -> _BilinearObjective:
+        return _BilinearObjective(self)
 
     def _after_training(self, train: Sequence[Episode]) -> None:
-        super()._after_training(train)  # C_ (and the linear A_, B_ the losses trained)
-        m = self.normalizer_.input_min.shape[0]
-        varying = np.arange(self.A_.shape[0])  # the lift has no constant coordinate
-        theta = ridge_lstsq(self._bilinear_pairs(train, varying), self.bilinear_ridge)
-        self.A_, self.B_, self.H_ = bilinear_matrices(theta.T, m, varying, self.ridge_prior)
+        super()._after_training(train)  # C_ and the trained A_, B_
+        m, size = self.normalizer_.input_min.shape[0], self.A_.shape[0]
+        if self.bilinear_training:
+            trained = self.params_.views()["koopman.H.weight"]
+            self.H_ = trained.double().numpy().reshape(m, size, size).copy()
+        else:
+            self.H_ = np.zeros((m, size, size))
+        if self.bilinear_refit == "lstsq":
+            varying = np.arange(size)  # the lift has no constant coordinate
+            theta = ridge_lstsq(self._bilinear_pairs(train, varying), self.bilinear_ridge)
+            self.A_, self.B_, self.H_ = bilinear_matrices(theta.T, m, varying, self.ridge_prior)
 
     def _bilinear_pairs(
         self, episodes: Sequence[Episode], varying: np.ndarray

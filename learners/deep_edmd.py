@@ -31,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 import torch
@@ -50,7 +50,7 @@ from learners.nets import Dense, LayerSpec, mlp_apply, mlp_backward, mlp_forward
 from learners.trained import TrainedLearner
 from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
-__all__ = ["DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
+__all__ = ["BilinearTerm", "DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
 
 _LSTSQ_RIDGE = 1e-10  # relative ridge of the optional least-squares refit of A, B (and of C)
 
@@ -75,13 +75,38 @@ class LossWeights:
         return {"ox": self.ox, "xx": self.xx, "xo": self.xo, "inf": self.inf}
 
 
+class BilinearTerm(NamedTuple):
+    """The bilinear term sum_j (v_j - v0_j) H_j z inside the losses (bilinear Deep EDMD).
+
+    ``h`` (m, N, N), ``v0`` (m,) the normalized "no input" (:mod:`learners.bilinear`), and
+    ``grad_h`` the view the fast step adds H's gradient into (None for the autograd terms).
+    """
+
+    h: torch.Tensor
+    v0: torch.Tensor
+    grad_h: torch.Tensor | None = None
+
+
 def _koopman_rollout(
-    z0: torch.Tensor, v: torch.Tensor, a: torch.Tensor, b: torch.Tensor
+    z0: torch.Tensor,
+    v: torch.Tensor,
+    a: torch.Tensor,
+    b: torch.Tensor,
+    bilinear: BilinearTerm | None = None,
 ) -> torch.Tensor:
-    """K^[i] z_0, i = 1..p, step by step as the paper writes it: (B, N), (B, p, m) -> (B, p, N)."""
+    """K^[i] z_0, i = 1..p, step by step as the paper writes it: (B, N), (B, p, m) -> (B, p, N).
+
+    With ``bilinear``, the operator of :mod:`learners.bilinear`:
+    z_{k+1} = A z_k + B v_k + sum_j (v_kj - v0_j) H_j z_k.
+    """
     z, out = z0, []
     for i in range(v.shape[1]):
-        z = z @ a.t() + v[:, i] @ b.t()
+        z_next = z @ a.t() + v[:, i] @ b.t()
+        if bilinear is not None:
+            h, v0 = bilinear.h, bilinear.v0
+            for j in range(h.shape[0]):
+                z_next = z_next + (v[:, i, j : j + 1] - v0[j]) * (z @ h[j].t())
+        z = z_next
         out.append(z)
     return torch.stack(out, 1)
 
@@ -95,15 +120,17 @@ def deep_edmd_loss_terms(
     v: torch.Tensor,
     *,
     lifted_includes_state: bool,
+    bilinear: BilinearTerm | None = None,
 ) -> dict[str, torch.Tensor]:
     """The paper's L_ox, L_xx, L_xo, L_inf of windows x (B, p+1, n), v (B, p, m); batch means.
 
     Plain autograd, written to read like the equations (module docstring); it is the
     specification that :func:`deep_edmd_step` is tested against, and the validation loss.
+    ``bilinear`` puts the bilinear term into K^[i] z_0 (bilinear Deep EDMD).
     """
     phi = mlp_apply(encoder, x)
     z = torch.cat([x, phi], -1) if lifted_includes_state else phi
-    z_pred = _koopman_rollout(z[:, 0], v, a, b)
+    z_pred = _koopman_rollout(z[:, 0], v, a, b, bilinear)
     x_next = x[:, 1:]
     recon_err = x_next - mlp_apply(decoder, z[:, 1:])
     pred_err = x_next - mlp_apply(decoder, z_pred)
@@ -139,6 +166,49 @@ def _scan(c: torch.Tensor, powers: Sequence[tuple[int, torch.Tensor]]) -> torch.
     return h
 
 
+def _bilinear_rollout(
+    z0: torch.Tensor, bv: torch.Tensor, mix: torch.Tensor, operators: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """States z_0..z_p (p+1, B, N) of z_{k+1} = sum_j mix_kj K_j z_k + bv_k, and the regressors
+    [mix_k0 z_k; mix_k1 z_k; ..] (p, B, 1+m, N) of each step; ``operators`` = [K_0; K_1; ..]
+    (1+m, N, N) with K_0 = A, K_j = H_j, and mix_k = [1, v_k - v0] (p, B, 1+m).
+
+    Two small ops per step (regressors, then one matmul with [K_0^T; K_1^T; ..]): the transition
+    differs per row and step, so the linear model's log-depth scan with powers of A does not
+    apply, and batched per-row matrix products are slower here than one skinny matmul.
+    """
+    p, batch, size = bv.shape
+    states = torch.empty(p + 1, batch, size)
+    states[0] = z0
+    regressors = torch.empty(p, batch, mix.shape[-1], size)
+    stacked = operators.transpose(1, 2).reshape(-1, size)  # [K_0^T; K_1^T; ..]
+    for k in range(p):
+        torch.mul(mix[k].unsqueeze(-1), states[k].unsqueeze(1), out=regressors[k])
+        torch.addmm(bv[k], regressors[k].view(batch, -1), stacked, out=states[k + 1])
+    return states, regressors
+
+
+def _bilinear_adjoint(
+    grad_pred: torch.Tensor, mix: torch.Tensor, operators: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """lambda_k = d loss / d z_k (k = 1..p) of :func:`_bilinear_rollout` given the direct
+    gradients g_k = ``grad_pred`` (p, B, N): lambda_k = g_k + M_k^T lambda_{k+1}, where
+    M_k = sum_j mix_kj K_j is step k's transition; also M_0^T lambda_1, the gradient of z_0.
+
+    The same two ops per step as the rollout: lambda^T M_k = [mix_k0 lambda; ..]^T [K_0; K_1; ..].
+    """
+    p, batch, size = grad_pred.shape
+    adjoint = torch.empty_like(grad_pred)
+    adjoint[-1] = grad_pred[-1]
+    weighted = torch.empty(batch, mix.shape[-1], size)
+    stacked = operators.reshape(-1, size)  # [K_0; K_1; ..]
+    for k in range(p - 1, 0, -1):
+        torch.mul(mix[k].unsqueeze(-1), adjoint[k].unsqueeze(1), out=weighted)
+        torch.addmm(grad_pred[k - 1], weighted.view(batch, -1), stacked, out=adjoint[k - 1])
+    torch.mul(mix[0].unsqueeze(-1), adjoint[0].unsqueeze(1), out=weighted)
+    return adjoint, weighted.view(batch, -1) @ stacked
+
+
 def deep_edmd_step(
     encoder: Sequence[Dense],
     decoder: Sequence[Dense],
@@ -151,6 +221,7 @@ def deep_edmd_step(
     weights: LossWeights,
     *,
     lifted_includes_state: bool,
+    bilinear: BilinearTerm | None = None,
 ) -> float:
     """sum_k alpha_k L_k over the data terms, with its gradient ADDED into the grad views.
 
@@ -158,6 +229,10 @@ def deep_edmd_step(
     encoder pass over all B (p+1) samples, K^[i] z_0 for all i by a log-depth scan with powers
     of A (the adjoint lambda_i = g_i + A^T lambda_{i+1} by the same scan with A^T), one decoder
     pass over the 2 B p reconstructions and predictions, and a hand-written backward.
+
+    With ``bilinear`` (its ``grad_h`` set), K^[i] z_0 is the bilinear rollout
+    (:func:`_bilinear_rollout`, step by step: its transition changes with every input) and the
+    adjoint runs back through it (:func:`_bilinear_adjoint`).
     """
     batch, p, n = x.shape[0], x.shape[1] - 1, x.shape[2]
     m = v.shape[2]
@@ -167,9 +242,17 @@ def deep_edmd_step(
     phi = acts_e[-1].view(p + 1, batch, -1)
     z = torch.cat([x, phi], -1) if lifted_includes_state else phi
     size = z.shape[-1]
-    powers = _powers(a, p)
-    h = _scan(torch.cat([z[:1], (v @ b.t()).view(p, batch, size)]), powers)  # h_i = K^[i] z_0
-    z_pred = h[1:]
+    if bilinear is not None:
+        # mix_k = [1, v_k - v0]: the weights of A, H_1 .. H_m in step k's transition
+        mix = torch.cat([torch.ones(p * batch, 1), v - bilinear.v0], 1).view(p, batch, -1)
+        operators = torch.cat([a.unsqueeze(0), bilinear.h])  # [A; H_1; ..] (1+m, N, N)
+        states, regressors = _bilinear_rollout(
+            z[0], (v @ b.t()).view(p, batch, size), mix, operators
+        )
+    else:
+        powers = _powers(a, p)
+        states = _scan(torch.cat([z[:1], (v @ b.t()).view(p, batch, size)]), powers)
+    z_pred = states[1:]  # states_i = K^[i] z_0
     acts_d = mlp_forward(decoder, torch.cat([z[1:], z_pred]).view(-1, size))
     err = x[1:].repeat(2, 1, 1) - acts_d[-1].view(2 * p, batch, n)  # [recon | pred]
     lift_err = z[1:] - z_pred
@@ -191,21 +274,34 @@ def deep_edmd_step(
     grad_in = mlp_backward(decoder, acts_d, grad_d.view(-1, n)).view(2 * p, batch, size)
     grad_z = grad_in[:p] + (2.0 * c_xo) * lift_err  # d/d z_1..z_p (reconstruction, L_xo)
     grad_pred = grad_in[p:] - (2.0 * c_xo) * lift_err  # d/d K^[i] z_0
-    adjoint = _scan(grad_pred.flip(0), [(s, pw.t()) for s, pw in powers]).flip(0)
-    flat_adjoint = adjoint.reshape(-1, size)
-    grad_a.addmm_(flat_adjoint.t(), h[:-1].reshape(-1, size))
+    if bilinear is not None:
+        if bilinear.grad_h is None:
+            raise ValueError("deep_edmd_step needs bilinear.grad_h to add H's gradient into")
+        adjoint, grad_z0 = _bilinear_adjoint(grad_pred, mix, operators)
+        flat_adjoint = adjoint.reshape(-1, size)
+        # d/d[A H_1 .. H_m] = sum_k lambda_{k+1} [z_k; vbar_k1 z_k; ..]^T
+        grad_operator = (flat_adjoint.t() @ regressors.reshape(p * batch, -1)).view(size, -1, size)
+        grad_a.add_(grad_operator[:, 0])
+        bilinear.grad_h.add_(grad_operator[:, 1:].transpose(0, 1))
+    else:
+        adjoint = _scan(grad_pred.flip(0), [(s, pw.t()) for s, pw in powers]).flip(0)
+        flat_adjoint = adjoint.reshape(-1, size)
+        grad_a.addmm_(flat_adjoint.t(), states[:-1].reshape(-1, size))
+        grad_z0 = adjoint[0] @ a
     grad_b.addmm_(flat_adjoint.t(), v)
-    grad_z = torch.cat([(adjoint[0] @ a).unsqueeze(0), grad_z])
+    grad_z = torch.cat([grad_z0.unsqueeze(0), grad_z])
     grad_phi = grad_z[..., n:] if lifted_includes_state else grad_z
     mlp_backward(encoder, acts_e, grad_phi.reshape(-1, grad_phi.shape[-1]), need_input_grad=False)
     return float(loss)
 
 
 class _Objective:
-    """Deep EDMD's loss for the training loop (learners.training.Objective)."""
+    """Deep EDMD's loss for the training loop (learners.training.Objective); with ``bilinear``,
+    the losses' rollout carries the bilinear term (bilinear Deep EDMD)."""
 
-    def __init__(self, learner: DeepEDMD) -> None:
+    def __init__(self, learner: DeepEDMD, bilinear: BilinearTerm | None = None) -> None:
         self.learner = learner
+        self.bilinear = bilinear
         self.params = learner.params_
         self.encoder = self.params.layers("encoder")
         self.decoder = self.params.layers("decoder")
@@ -230,6 +326,7 @@ class _Objective:
             v,
             learner.alpha,
             lifted_includes_state=learner.lifted_includes_state,
+            bilinear=self.bilinear,
         )
         # alpha_5 ||theta_e||^2 + alpha_6 ||theta_d||^2: gradient 2 alpha theta, added exactly
         data, grad = self.params.data, self.params.grad
@@ -250,6 +347,7 @@ class _Objective:
                 x,
                 v,
                 lifted_includes_state=self.learner.lifted_includes_state,
+                bilinear=self.bilinear,
             )
         return batch_mean_terms(terms, self.learner.alpha.data_terms())
 

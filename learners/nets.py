@@ -47,13 +47,18 @@ _threshold_backward = torch.ops.aten.threshold_backward
 
 @dataclass(frozen=True)
 class LayerSpec:
-    """One affine layer y = act(W x + b): W (fan_out, fan_in) stored as ``{name}.weight``."""
+    """One affine layer y = act(W x + b): W (fan_out, fan_in) stored as ``{name}.weight``.
+
+    ``init``: ``uniform`` (module docstring) or ``zero`` (a term that starts switched off, such
+    as bilinear Deep EDMD's H: it draws nothing, so the other tensors get the same values).
+    """
 
     name: str
     fan_in: int
     fan_out: int
     activation: str = "relu"
     bias: bool = True
+    init: str = "uniform"
 
 
 def mlp_specs(prefix: str, widths: Sequence[int], last_activation: str) -> list[LayerSpec]:
@@ -102,9 +107,15 @@ class FlatParameters:
         return slice(min(a for a, _ in ranges), max(b for _, b in ranges))
 
     def initialize(self, generator: torch.Generator) -> None:
-        """Uniform in [-1/sqrt(fan_in), 1/sqrt(fan_in)] for weights and biases (module doc)."""
+        """Uniform in [-1/sqrt(fan_in), 1/sqrt(fan_in)] for weights and biases (module doc);
+        zeros, without drawing, for the ``init: zero`` tensors."""
         views = self.views()
         for s in self.specs:
+            if s.init == "zero":
+                for key in (f"{s.name}.weight", f"{s.name}.bias"):
+                    if key in views:
+                        views[key].zero_()
+                continue
             bound = 1.0 / math.sqrt(s.fan_in)
             for key in (f"{s.name}.weight", f"{s.name}.bias"):
                 if key in views:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -395,8 +396,9 @@ def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_core
 def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(
     data: dict, tmp_path: Path
 ) -> None:
-    """The same training as Deep EDMD (same network bit for bit), then [A B H] solving the
-    normal equations of the bilinear regression on the lifted data; saved and loaded whole."""
+    """bilinear_training false: the same training as Deep EDMD (same network bit for bit), then
+    [A B H] solving the normal equations of the bilinear regression on the lifted data; saved
+    and loaded whole."""
     from harness.interfaces import BilinearModel
     from learners.bilinear import bilinear_regression_rows
     from learners.bilinear_deep_edmd import BilinearDeepEDMD
@@ -411,7 +413,9 @@ def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(
         "progress": False,
     }
     plain = DeepEDMD(**shape, training=training).fit(*args)
-    model = BilinearDeepEDMD(**shape, training=training, ridge_prior="zero", bilinear_ridge=0.0)
+    model = BilinearDeepEDMD(
+        **shape, training=training, ridge_prior="zero", bilinear_ridge=0.0, bilinear_training=False
+    )
     model.fit(*args)
     np.testing.assert_array_equal(plain.params_.data, model.params_.data)
     assert isinstance(model, BilinearModel) and model.H_.shape == (2, 7, 7)
@@ -442,3 +446,229 @@ def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(
     check_same_learner(loaded, model, "bilinear_deep.pt", "bilinear_deep_edmd")
     with pytest.raises(ValueError, match=r"learner\.refit_koopman_lstsq must be false"):
         BilinearDeepEDMD(refit_koopman_lstsq=True)
+
+
+# -- bilinear Deep EDMD: trained through the bilinear term ----------------------------------------
+
+
+def small_bilinear(**overrides):
+    """A bilinear Deep EDMD as small and short as :func:`small`'s Deep EDMD."""
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD
+
+    training = {
+        "max_steps": 30,
+        "batch_size": 16,
+        "lr": 3e-3,
+        "eval_every_steps": 10,
+        "progress": False,
+        **overrides.pop("training", {}),
+    }
+    shape = {"lifted_dim": 4, "encoder_hidden": [16], "decoder_hidden": [16], "horizon": 8}
+    return BilinearDeepEDMD(**shape, training=training, **overrides)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"alpha": {"inf": 0.1, "encoder_l2": 0.01, "decoder_l2": 0.02}},
+        {"lifted_includes_state": False, "random_layer": {"enabled": True, "std": 0.3}},
+        {"stability": {"weight": 0.5, "radius": 0.9}},
+    ],
+    ids=["all_terms", "phi_only_random", "stability"],
+)
+def test_the_bilinear_step_gradients_equal_autograd_on_the_bilinear_loss(overrides) -> None:
+    """Paper-sized networks, p = 12, a nonzero H: the hand-written adjoint through
+    z+ = A z + B v + sum_j (v_j - v0_j) H_j z against autograd on the readable rollout (and the
+    stability penalty's autograd gradient added on top)."""
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD, stability_penalty
+    from learners.deep_edmd import BilinearTerm
+
+    normalizer = MinMaxNormalizer.fit(drive_episodes(1, 5.0, first_seed=10))
+    learner = BilinearDeepEDMD(**overrides)
+    learner.normalizer_ = normalizer
+    learner._build(3, 2)
+    learner.params_.initialize(torch.Generator().manual_seed(0))
+    params = learner.params_
+    params.views()["koopman.H.weight"].normal_(0.0, 0.1, generator=torch.Generator().manual_seed(2))
+    generator = torch.Generator().manual_seed(1)
+    x = torch.rand(16, 13, 3, generator=generator)
+    v = torch.rand(16, 12, 2, generator=generator)
+
+    leaf = params.data.clone().requires_grad_()
+    encoder, layer = params.layers("encoder", leaf), learner._step_layer(7)
+    if layer is not None:
+        encoder = [*encoder[:-1], layer, encoder[-1]]
+    views = params.views(leaf)
+    a, size = views["koopman.A.weight"], views["koopman.A.weight"].shape[0]
+    h = views["koopman.H.weight"].view(2, size, size)
+    v0 = torch.from_numpy(learner.v0_.astype(np.float32))
+    terms = deep_edmd_loss_terms(
+        encoder,
+        params.layers("decoder", leaf),
+        a,
+        views["koopman.B.weight"],
+        x,
+        v,
+        lifted_includes_state=learner.lifted_includes_state,
+        bilinear=BilinearTerm(h, v0),
+    )
+    alpha, stability = learner.alpha, learner.stability
+    loss = sum(w * terms[k] for k, w in alpha.data_terms().items())
+    loss = loss + stability.weight * stability_penalty(a, h, v0, stability.radius)
+    objective = (
+        loss
+        + alpha.encoder_l2 * leaf[params.span("encoder")].square().sum()
+        + alpha.decoder_l2 * leaf[params.span("decoder")].square().sum()
+    )
+    (expected,) = torch.autograd.grad(objective, leaf)
+    params.grad.zero_()
+    assert learner._objective().train_step(x, v, 7) == pytest.approx(float(loss.detach()), rel=1e-5)
+    assert float((params.grad - expected).norm() / expected.norm()) < 1e-5
+    h_grad = params.views(params.grad)["koopman.H.weight"]
+    assert float(h_grad.norm()) > 1e-3 * float(params.grad.norm())  # H is trained
+
+
+def test_h_starts_at_zero_from_deep_edmds_initial_network_and_training_moves_it(
+    data: dict,
+) -> None:
+    """H is the last tensor and starts at zero without drawing: every other initial weight is
+    Deep EDMD's. Training through the bilinear term makes H nonzero; with bilinear_refit none
+    the model is the trained A, B, H (predict rolls that operator out)."""
+    from learners.bilinear import bilinear_rollout
+
+    args = (data["train"], data["validation"], data["normalizer"])
+    plain, bilinear = small(DeepEDMD), small_bilinear(bilinear_refit="none")
+    for learner in (plain, bilinear):
+        learner._build(3, 2)
+        learner.params_.initialize(torch.Generator().manual_seed(0))
+    h0 = bilinear.params_.views()["koopman.H.weight"]
+    assert h0.shape == (2 * 7, 7) and not h0.any()
+    np.testing.assert_array_equal(bilinear.params_.data[: len(plain.params_)], plain.params_.data)
+    model = bilinear.fit(*args)
+    trained = model.params_.views()
+    assert np.abs(model.H_).max() > 1e-4
+    np.testing.assert_array_equal(model.H_, trained["koopman.H.weight"].view(2, 7, 7).double())
+    np.testing.assert_array_equal(model.A_, trained["koopman.A.weight"].double())
+    np.testing.assert_array_equal(model.B_, trained["koopman.B.weight"].double())
+    episode = data["validation"][0]
+    inputs = episode.inputs[:50]
+    z = bilinear_rollout(
+        model.A_,
+        model.B_,
+        model.H_,
+        model.lift(episode.states[0]),
+        data["normalizer"].inputs(inputs),
+        model.v0_,
+    )
+    expected = data["normalizer"].states_inverse(z @ model.C_.T)
+    # float32 encoder: lift(x0) of one state and of predict's batch may round differently
+    np.testing.assert_allclose(
+        model.predict(episode.states[0], inputs)[1:], expected[1:], rtol=1e-5, atol=1e-6
+    )
+    # the refit replaces the trained operator, on the network trained through H
+    refit = small_bilinear(bilinear_refit="lstsq").fit(*args)
+    np.testing.assert_array_equal(refit.params_.data, model.params_.data)
+    assert not np.array_equal(refit.H_, model.H_)
+
+
+def test_the_stability_penalty_is_zero_when_stable_and_pushes_unstable_modes_in() -> None:
+    """sum max(0, |lambda| - radius) over A and A + sum_j (c_j - v0_j) H_j at the input box's
+    corners: zero for a contraction; for a mode outside the circle, positive, and gradient
+    steps on it bring every eigenvalue back inside."""
+    from learners.bilinear_deep_edmd import stability_penalty
+
+    generator = torch.Generator().manual_seed(0)
+    v0 = torch.tensor([0.45, 0.1])
+    a = 0.5 * torch.eye(5) + 0.05 * torch.randn(5, 5, generator=generator)
+    h = 0.05 * torch.randn(2, 5, 5, generator=generator)
+    assert float(stability_penalty(a, h, v0, 1.0)) == 0.0
+    unstable = a.clone()
+    unstable[0, 0] = 1.05
+    assert float(stability_penalty(unstable, None, v0, 1.0)) > 0.0  # A alone
+    # only the corners' modes are outside at radius 1 when H alone pushes them out
+    assert float(stability_penalty(a, 20 * h, v0, 1.0)) > 0.0
+    a_leaf, h_leaf = unstable.clone().requires_grad_(), h.clone().requires_grad_()
+    values = []
+    for _ in range(50):
+        penalty = stability_penalty(a_leaf, h_leaf, v0, 1.0)
+        values.append(float(penalty.detach()))
+        grad_a, grad_h = torch.autograd.grad(penalty, [a_leaf, h_leaf])
+        with torch.no_grad():
+            a_leaf -= 0.01 * grad_a
+            h_leaf -= 0.01 * grad_h
+    assert values[0] > 0.05 and values[-1] == 0.0
+    assert all(later <= earlier for earlier, later in itertools.pairwise(values))
+
+
+def test_a_stability_weight_pulls_the_trained_operator_inside_the_circle(data: dict) -> None:
+    """The same short training with and without the penalty (radius 0.2, well inside the
+    initial weights' spectrum, so that it binds): the penalised model's eigenvalues over A and
+    the corners exceed the radius by less, and validation reports the term."""
+    from learners.bilinear_deep_edmd import stability_penalty
+
+    args = (data["train"], data["validation"], data["normalizer"])
+
+    def worst(model) -> float:
+        views = model.params_.views()
+        a = views["koopman.A.weight"]
+        h = views["koopman.H.weight"].view(2, *a.shape)
+        v0 = torch.from_numpy(model.v0_.astype(np.float32))
+        return float(stability_penalty(a, h, v0, 0.2))
+
+    free = small_bilinear(bilinear_refit="none", training={"lr": 1e-2}).fit(*args)
+    held = small_bilinear(
+        bilinear_refit="none", training={"lr": 1e-2}, stability={"weight": 1.0, "radius": 0.2}
+    ).fit(*args)
+    assert worst(held) < 0.5 * worst(free)
+    assert "stability" in held.history_.validation[-1]
+    assert "stability" not in free.history_.validation[-1]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"bilinear_refit": "qr"}, r"learner\.bilinear_refit must be one of lstsq, none"),
+        ({"bilinear_training": "yes"}, r"learner\.bilinear_training must be true or false"),
+        ({"stability": {"weight": -1.0}}, r"learner\.stability\.weight must be >= 0"),
+        ({"stability": {"radius": 0.0}}, r"learner\.stability\.radius must be > 0"),
+        ({"stability": {"wieght": 1.0}}, r"learner\.stability\.wieght is not a key"),
+        ({"refit_koopman_lstsq": True}, r"learner\.refit_koopman_lstsq must be false"),
+    ],
+)
+def test_bad_bilinear_deep_edmd_settings_fail_in_one_line(overrides, message: str) -> None:
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD
+
+    with pytest.raises(ValueError, match=message) as info:
+        BilinearDeepEDMD(**overrides)
+    assert "\n" not in str(info.value)
+
+
+def test_a_bilinear_deep_edmd_trained_through_h_saves_and_loads_whole(
+    data: dict, tmp_path: Path
+) -> None:
+    model = small_bilinear(bilinear_refit="none").fit(
+        data["train"], data["validation"], data["normalizer"]
+    )
+    loaded = load_learner(model.save(tmp_path / "through.pt"))
+    assert loaded.hyperparameters == model.hyperparameters
+    np.testing.assert_array_equal(loaded.params_.data, model.params_.data)
+    np.testing.assert_array_equal(loaded.H_, model.H_)
+    episode = data["validation"][0]
+    np.testing.assert_array_equal(
+        loaded.predict(episode.states[0], episode.inputs[:100]),
+        model.predict(episode.states[0], episode.inputs[:100]),
+    )
+
+
+def test_a_model_file_from_before_bilinear_training_loads_as_trained_then() -> None:
+    """Files written before the key existed hold Deep EDMD's network and the refit."""
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD
+
+    old = {
+        k: v
+        for k, v in BilinearDeepEDMD(bilinear_training=False).hyperparameters.items()
+        if k not in ("bilinear_training", "bilinear_refit", "stability")
+    }
+    learner = BilinearDeepEDMD.from_hyperparameters(old)
+    assert not learner.bilinear_training and learner.bilinear_refit == "lstsq"
+    assert BilinearDeepEDMD().bilinear_training  # a new model trains through H
