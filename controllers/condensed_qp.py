@@ -324,11 +324,14 @@ class CondensedQP:
             self._daqp_rows_new = False
         else:
             self._daqp.update(f=f, bupper=b)
-        y, _, flag, info = self._daqp.solve()
-        x = self._daqp_primal(y)
-        multipliers = info["lam"]
-        s = self.residual(x, v_prev)
+        _, _, flag, info = self._daqp.solve()
+        # x from DAQP's multipliers, as ours computes it from its own: stationarity holds by
+        # construction, and the checks below are the rest of the KKT conditions.
+        multipliers = np.asarray(info["lam"], dtype=float)
         active = multipliers > 0
+        y = -f - multipliers[active] @ self._daqp_rows[active]
+        x = self._daqp_primal(y)
+        s = self.residual(x, v_prev)
         if (
             flag != DAQP_OPTIMAL
             or not np.isfinite(x).all()
