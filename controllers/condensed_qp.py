@@ -126,6 +126,7 @@ class CondensedQP:
         self._guess = np.zeros(self.rows, dtype=bool)
         self._p_factor: np.ndarray | None = None  # DAQP's L, computed when first needed
         self._daqp_rows_ready = False
+        self.reset()
 
     def _configure(
         self,
@@ -253,6 +254,19 @@ class CondensedQP:
         """Forget the previous active set (a new run starts cold)."""
         self._guess[:] = False
         self._daqp = None
+        if self.active_set and self.qp_solver == "daqp":
+            self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
+
+    def _daqp_setup(self, f: np.ndarray, b: np.ndarray) -> daqp.Model | None:
+        """A DAQP workspace for this QP's rows, cold (no active row); None if DAQP refuses.
+        :meth:`reset` builds it with placeholder f and b (y = 0 feasible) so that a run's first
+        step does not pay for it (1-3 ms at 60/50): every solve updates f and b."""
+        self._ensure_daqp()
+        model = daqp.Model()
+        model.settings = {"primal_tol": self.tol, "dual_tol": self.tol, "eps_prox": 0.0}
+        flag, _ = model.setup(self._daqp_identity, f, self._daqp_rows, b, self._daqp_lower)
+        self._daqp_rows_new = False
+        return model if flag >= 0 else None
 
     def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
         """x_u = [ΔV; 0], the minimizer of J without constraints."""
@@ -309,16 +323,14 @@ class CondensedQP:
         assert factor is not None  # _ensure_daqp built it
         f = np.zeros(M + 1)  # ε_u = 0
         f[:M] = -dtrmv(factor, x_u[:M], lower=1, trans=1)  # L⁻¹c = -Lᵀx_u
-        b = -self.residual(np.zeros(M + 1), v_prev)
+        b = self._daqp_upper.copy()  # b of G x <= b: only the input rows move with v_{t-1}
+        held = np.tile(v_prev, self.Nc)
+        b[2 * M : 3 * M] -= held
+        b[3 * M : 4 * M] += held
         if self._daqp is None:
-            model = daqp.Model()
-            model.settings = {"primal_tol": self.tol, "dual_tol": self.tol, "eps_prox": 0.0}
-            flag, _ = model.setup(
-                self._daqp_identity, f, self._daqp_rows, b, np.full(self.rows, -np.inf)
-            )
-            if flag < 0:
+            self._daqp = self._daqp_setup(f, b)
+            if self._daqp is None:
                 return None
-            self._daqp, self._daqp_rows_new = model, False
         elif self._daqp_rows_new:
             self._daqp.update(A=self._daqp_rows, f=f, bupper=b)
             self._daqp_rows_new = False
@@ -363,6 +375,8 @@ class CondensedQP:
             self._p_factor = factor
         self._daqp_rows = self._build_daqp_rows(self._p_factor)
         self._daqp_identity = np.eye(M + 1)
+        self._daqp_lower = np.full(self.rows, -np.inf)  # one-sided rows G x <= b
+        self._daqp_upper = -self.residual(np.zeros(M + 1), np.zeros(self.m))  # b at v_{t-1} = 0
         self._daqp_rows_new = True
         self._daqp_rows_ready = True
 
@@ -600,6 +614,7 @@ class TimeVaryingQP(CondensedQP):
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
         self._given_free: np.ndarray | None = None
+        self.reset()
 
     def set_model(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None = None) -> None:
         """The model of this step: A (Np, N, N), B (Np, N, m), d (Np, N) (default 0); or one
