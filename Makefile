@@ -31,7 +31,7 @@ test-ray: setup  ## the Ray launcher's tests (installs the `ray` extra: ~60 pack
 	$(BIN)/pip install --quiet -e '.[dev,ray]'
 	$(BIN)/python -m pytest tests/test_launchers.py -m '' --durations=0
 
-bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxpy, daqp)
+bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxpy)
 	$(BIN)/pip install --quiet -e '.[dev,bench]'
 	$(BIN)/python -m bench.plant_throughput
 	$(BIN)/python -m bench.collect_throughput

@@ -11,7 +11,9 @@ double lane change at 80 km/h, at both of the paper's horizons:
 
 each tracking the reference's states (the paper's), the same offset-free (a disturbance estimate
 in every prediction), and following the course's centre line (``reference: path``: the path
-QP's prediction and Hessian are rebuilt every step, for the LTI model too).
+QP's prediction and Hessian are rebuilt every step, for the LTI model too); and each with
+both ``qp_solver`` values: ``daqp`` (the default) and ``active_set`` (ours), the QPs' second
+solve path, run after run in the same process.
 
 Times are whole ``act`` calls as ``harness.tracking`` measures them (lift, linearisation,
 prediction matrices, QP, input recovery) on the machine as it is; the table says the load.
@@ -42,6 +44,7 @@ from learners.edmd import EDMD
 from learners.single_track import SingleTrack
 
 TARGETS_MS = {(10, 7): 0.5, (60, 50): 2.0}  # issue 11: median of a time-varying step
+QP_SOLVERS = ("daqp", "active_set")
 MODES = {  # name: DEMPCConfig keys
     "states": {},
     "offset-free": {"offset_free": True},
@@ -77,14 +80,19 @@ def main() -> None:
     reference, path = lane_change.build(0.01, []), lane_change.course().path()
     print(f"models fitted on {count} drives of {steps / 100:.0f} s; reference: ISO 3888-1 DLC\n")
     print(
-        "| Np/Nc | controller | mode | N | median ms | p99 ms | max ms | deadline misses | "
-        "rmse vx / vy / yaw rate | max lateral deviation m | paths |"
+        "| Np/Nc | controller | mode | qp_solver | N | median ms | p99 ms | max ms | "
+        "deadline misses | rmse vx / vy / yaw rate | max lateral deviation m | paths |"
     )
-    print("|" + "---|" * 11)
-    for horizons, (name, model), (mode, keys) in itertools.product(
-        ((10, 7), (60, 50)), models.items(), MODES.items()
+    print("|" + "---|" * 12)
+    for horizons, (name, model), (mode, keys), qp_solver in itertools.product(
+        ((10, 7), (60, 50)), models.items(), MODES.items(), QP_SOLVERS
     ):
-        config = DEMPCConfig(Np=horizons[0], Nc=horizons[1], **keys)  # type: ignore[arg-type]
+        config = DEMPCConfig(
+            Np=horizons[0],
+            Nc=horizons[1],
+            qp_solver=qp_solver,
+            **keys,  # type: ignore[arg-type]
+        )
         metrics, run = track(
             Sedan(),
             DEMPC(model, config),
@@ -102,7 +110,7 @@ def main() -> None:
         target = TARGETS_MS[horizons] if "TV" in name else None
         mark = "" if target is None else (" ✓" if times["median"] <= target else " ✗")
         print(
-            f"| {horizons[0]}/{horizons[1]} | {name} | {mode} | {size} | "
+            f"| {horizons[0]}/{horizons[1]} | {name} | {mode} | {qp_solver} | {size} | "
             f"{times['median']:.3f}{mark} | {times['p99']:.3f} | {times['max']:.2f} | "
             f"{metrics['deadline_misses']} | {rmse['vx']:.3f} / {rmse['vy']:.3f} / "
             f"{rmse['yaw_rate']:.3f} | {deviation:.2f} | {paths} |"

@@ -23,24 +23,44 @@ Everything that does not depend on (z_t, v_{t-1}, Y_ref) is built once per model
 
 1. the unconstrained optimum x_u = -P⁻¹c (one matrix-vector product); it is the QP's solution
    whenever it satisfies every row;
-2. the last step's active set, hot-started: the QP's dual min_{λ>=0} ½λᵀKλ - rᵀλ with
-   K = GP⁻¹Gᵀ (built once) and r = Gx_u - b is solved by a Lawson-Hanson active-set method
-   started from the rows that were active one step ago; it returns only a KKT point
-   (λ > 0 on its rows, every row satisfied to ``tol``), i.e. the optimum;
+2. an active-set solver, started from the last step's active set (``qp_solver``):
+   - ``daqp`` (DAQP: Arnström, Bemporad and Axehill 2022, a dual active-set solver in C,
+     warm-started from its own last working set), given the QP with its Hessian made the
+     identity: with P = LLᵀ and y = Lᵀx,
+
+         min ½‖y‖² + fᵀy  s.t.  (G L⁻ᵀ) y <= b,   f = L⁻¹c = -Lᵀx_u,
+
+     so DAQP's own factorization of the Hessian is trivial (diagonal), and a new P (a
+     time-varying model, every step) costs one triangular inverse and the rows G L⁻ᵀ, built
+     from G's structure (:meth:`CondensedQP._build_daqp_rows`), not DAQP's O(rows·n²)
+     refactorization (``update(H=...)``: 1 ms at 60/50, against 0.3 ms here);
+   - ``active_set`` (ours): the QP's dual min_{λ>=0} ½λᵀKλ - rᵀλ with K = GP⁻¹Gᵀ (built once)
+     and r = Gx_u - b, by a Lawson-Hanson active-set method started from the rows that were
+     active one step ago.
+   Either answer is accepted only at a KKT point to ``tol``: every row satisfied, multipliers
+   >= 0 and their rows active (x follows from the multipliers exactly), i.e. the optimum;
 3. PIQP (dense), on the same problem written in absolute inputs V (box bounds for V, the
-   increment rows as general rows: the fastest layout measured), whenever 2 gives up.
+   increment rows as general rows: the fastest layout measured), whenever 2 gives up. PIQP is
+   the solver of record: every answer above is the optimum PIQP finds, to ``tol``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import daqp
 import numpy as np
 import piqp
 from scipy.linalg import cho_factor, cho_solve
-from scipy.linalg.lapack import dpotrf, dpotrs, dtrtrs
+from scipy.linalg.blas import dtrmv
+from scipy.linalg.lapack import dpotrf, dpotrs, dtrtri, dtrtrs
 
-PATHS = ("unconstrained", "active_set", "piqp", "failed")
+PATHS = ("unconstrained", "active_set", "daqp", "piqp", "failed")
+# The active-set solver tried before PIQP: DAQP (default: the bounded worst case, measured in
+# docs/control.md) or ours (Lawson-Hanson on the dual, hot-started).
+QP_SOLVERS = ("daqp", "active_set")
+# DAQP's exit flag for an optimum (1); 2 (soft optimum) cannot happen without soft rows.
+DAQP_OPTIMAL = 1
 
 
 @dataclass(frozen=True)
@@ -68,9 +88,10 @@ class CondensedQP:
         v_min, v_max: (m,) hard input bounds; dv_max: (m,) increment limits (> 0).
         tol: feasibility / optimality tolerance of every path.
         max_iter: PIQP iteration limit, the time limit of a solve.
-        active_set: try the hot-started active set before PIQP.
-        active_set_max_iter: factorizations before the active set hands over to PIQP; 100
+        active_set: try an active-set solver before PIQP.
+        active_set_max_iter: factorizations before our active set hands over to PIQP; 100
             bounds a solve at about 4 ms + PIQP, inside the 10 ms period.
+        qp_solver: which active-set solver, one of QP_SOLVERS.
     """
 
     def __init__(
@@ -91,8 +112,11 @@ class CondensedQP:
         max_iter: int = 100,
         active_set: bool = True,
         active_set_max_iter: int = 100,
+        qp_solver: str = "daqp",
     ) -> None:
-        self._configure(C, B.shape[1], Np, Nc, rho, v_min, v_max, dv_max, tol, active_set)
+        self._configure(
+            C, B.shape[1], Np, Nc, rho, v_min, v_max, dv_max, tol, active_set, qp_solver
+        )
         self.active_set_max_iter = active_set_max_iter
         self._build_prediction(A, B, C)
         self._build_cost(Q, R)
@@ -100,6 +124,9 @@ class CondensedQP:
         self._build_dual()
         self._build_piqp(max_iter)
         self._guess = np.zeros(self.rows, dtype=bool)
+        self._p_factor: np.ndarray | None = None  # DAQP's L, computed when first needed
+        self._daqp_rows_ready = False
+        self.reset()
 
     def _configure(
         self,
@@ -113,12 +140,18 @@ class CondensedQP:
         dv_max: np.ndarray,
         tol: float,
         active_set: bool,
+        qp_solver: str,
     ) -> None:
         """Sizes and limits: what does not depend on the model's matrices."""
+        if qp_solver not in QP_SOLVERS:
+            raise ValueError(
+                f"qp_solver must be one of {', '.join(QP_SOLVERS)} (got {qp_solver!r})"
+            )
         self.n, self.N = C.shape
         self.m = m
         self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
-        self.active_set = active_set
+        self.active_set, self.qp_solver = active_set, qp_solver
+        self._daqp: daqp.Model | None = None  # set up at its first solve, warm from then on
         self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
         self.dv_max = np.asarray(dv_max, float)
 
@@ -220,6 +253,20 @@ class CondensedQP:
     def reset(self) -> None:
         """Forget the previous active set (a new run starts cold)."""
         self._guess[:] = False
+        self._daqp = None
+        if self.active_set and self.qp_solver == "daqp":
+            self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
+
+    def _daqp_setup(self, f: np.ndarray, b: np.ndarray) -> daqp.Model | None:
+        """A DAQP workspace for this QP's rows, cold (no active row); None if DAQP refuses.
+        :meth:`reset` builds it with placeholder f and b (y = 0 feasible) so that a run's first
+        step does not pay for it (1-3 ms at 60/50): every solve updates f and b."""
+        self._ensure_daqp()
+        model = daqp.Model()
+        model.settings = {"primal_tol": self.tol, "dual_tol": self.tol, "eps_prox": 0.0}
+        flag, _ = model.setup(self._daqp_identity, f, self._daqp_rows, b, self._daqp_lower)
+        self._daqp_rows_new = False
+        return model if flag >= 0 else None
 
     def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
         """x_u = [ΔV; 0], the minimizer of J without constraints."""
@@ -247,7 +294,12 @@ class CondensedQP:
         if not (r > self.tol).any():
             self._guess[:] = False
             return self._solution(x_u, "unconstrained", 0, "solved")
-        if self.active_set:
+        if self.active_set and self.qp_solver == "daqp":
+            answer = self._solve_daqp(x_u, v_prev)
+            if answer is not None:
+                x, iterations = answer
+                return self._solution(x, "daqp", iterations, "solved")
+        elif self.active_set:
             self._ensure_dual()
             found = self._hot_active_set(x_u, r, v_prev)
             if found is not None:
@@ -260,6 +312,94 @@ class CondensedQP:
             x = np.append(solution.dv.ravel(), solution.slack)
             self._guess = self.residual(x, v_prev) > -10 * self.tol
         return solution
+
+    def _solve_daqp(self, x_u: np.ndarray, v_prev: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """DAQP on min ½‖y‖² + fᵀy s.t. (G L⁻ᵀ) y <= b (y = Lᵀx), warm-started from its last
+        working set. Returns (x, iterations) at a KKT point to ``tol``, or None (PIQP's turn;
+        the next DAQP solve then starts cold)."""
+        M = self._M
+        self._ensure_daqp()
+        factor = self._p_factor
+        assert factor is not None  # _ensure_daqp built it
+        f = np.zeros(M + 1)  # ε_u = 0
+        f[:M] = -dtrmv(factor, x_u[:M], lower=1, trans=1)  # L⁻¹c = -Lᵀx_u
+        b = self._daqp_upper.copy()  # b of G x <= b: only the input rows move with v_{t-1}
+        held = np.tile(v_prev, self.Nc)
+        b[2 * M : 3 * M] -= held
+        b[3 * M : 4 * M] += held
+        if self._daqp is None:
+            self._daqp = self._daqp_setup(f, b)
+            if self._daqp is None:
+                return None
+        elif self._daqp_rows_new:
+            self._daqp.update(A=self._daqp_rows, f=f, bupper=b)
+            self._daqp_rows_new = False
+        else:
+            self._daqp.update(f=f, bupper=b)
+        _, _, flag, info = self._daqp.solve()
+        # x from DAQP's multipliers, as ours computes it from its own: stationarity holds by
+        # construction, and the checks below are the rest of the KKT conditions.
+        multipliers = np.asarray(info["lam"], dtype=float)
+        active = multipliers > 0
+        y = -f - multipliers[active] @ self._daqp_rows[active]
+        x = self._daqp_primal(y)
+        s = self.residual(x, v_prev)
+        if (
+            flag != DAQP_OPTIMAL
+            or not np.isfinite(x).all()
+            or s.max() > self.tol
+            or (multipliers < 0).any()
+            or (active.any() and np.abs(s[active]).max() > self.tol)
+        ):
+            self._daqp = None  # its working set is suspect: the next solve starts cold
+            return None
+        return x, int(info["iterations"])
+
+    def _daqp_primal(self, y: np.ndarray) -> np.ndarray:
+        """x = L⁻ᵀ y (one triangular solve; ε's row of L is √(2ρ))."""
+        M, factor = self._M, self._p_factor
+        x = np.empty(M + 1)
+        x[:M] = dtrtrs(factor, y[:M], lower=1, trans=1)[0]
+        x[M] = y[M] / np.sqrt(2 * self.rho)
+        return x
+
+    def _ensure_daqp(self) -> None:
+        """L (P = LLᵀ) and DAQP's rows G L⁻ᵀ are current (built once here: P never changes)."""
+        if self._daqp_rows_ready:
+            return
+        M = self._M
+        if self._p_factor is None:
+            factor, info = dpotrf(self.P[:M, :M], lower=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"QP Hessian not positive definite ({info})")
+            self._p_factor = factor
+        self._daqp_rows = self._build_daqp_rows(self._p_factor)
+        self._daqp_identity = np.eye(M + 1)
+        self._daqp_lower = np.full(self.rows, -np.inf)  # one-sided rows G x <= b
+        self._daqp_upper = -self.residual(np.zeros(M + 1), np.zeros(self.m))  # b at v_{t-1} = 0
+        self._daqp_rows_new = True
+        self._daqp_rows_ready = True
+
+    def _build_daqp_rows(self, factor: np.ndarray) -> np.ndarray:
+        """G L⁻ᵀ from the structure of G (rows a - b, -a - b, c, -c, -b as in
+        :meth:`TimeVaryingQP._build_dual`): with W = L⁻ᵀ (upper triangular), the rate rows
+        are W's rows scaled by 1/Δv_max, the input rows W's block cumulative sums, and ε's
+        column is 1/√(2ρ): one triangular inverse (M³/3) and O(rows·M), no product with G."""
+        M, m, Nc = self._M, self.m, self.Nc
+        inverse, info = dtrtri(factor, lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"QP Hessian factor singular ({info})")
+        W = np.tril(inverse).T  # L⁻ᵀ; dtrtri leaves the upper triangle as it found it
+        rate = self._inv_rate[:, None] * W
+        cumulative = W.reshape(Nc, m, M).cumsum(axis=0).reshape(M, M)
+        slack = 1.0 / np.sqrt(2 * self.rho)
+        rows = np.zeros((self.rows, M + 1))
+        rows[:M, :M], rows[:M, M] = rate, -slack
+        rows[M : 2 * M, :M], rows[M : 2 * M, M] = -rate, -slack
+        rows[2 * M : 3 * M, :M] = cumulative
+        rows[3 * M : 4 * M, :M] = -cumulative
+        rows[4 * M, M] = -slack
+        return rows
 
     def _ensure_dual(self) -> None:
         """K and P⁻¹Gᵀ exist before the active set runs (built once here: P never changes)."""
@@ -420,8 +560,9 @@ class TimeVaryingQP(CondensedQP):
 
     e.g. a bilinear or nonlinear model linearised along the previous plan (d_k is what the
     linearisation leaves constant). :meth:`set_model` rebuilds Θ, the Hessian and the
-    unconstrained gain each step; the active set's dual operator K and PIQP's Hessian are built
-    only when a step needs them (PIQP receives the new Hessian by ``update``). With A_k = A,
+    unconstrained gain each step; DAQP's rows G L⁻ᵀ, the active set's dual operator K and
+    PIQP's Hessian are built only when a step needs them (DAQP and PIQP receive them by
+    ``update``, keeping their warm start). With A_k = A,
     B_k = B, d_k = 0 it solves the time-invariant QP (up to rounding).
 
     Args:
@@ -445,8 +586,9 @@ class TimeVaryingQP(CondensedQP):
         max_iter: int = 100,
         active_set: bool = True,
         active_set_max_iter: int = 100,
+        qp_solver: str = "daqp",
     ) -> None:
-        self._configure(C, inputs, Np, Nc, rho, v_min, v_max, dv_max, tol, active_set)
+        self._configure(C, inputs, Np, Nc, rho, v_min, v_max, dv_max, tol, active_set, qp_solver)
         self.active_set_max_iter = active_set_max_iter
         self.C = np.ascontiguousarray(C, dtype=float)
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
@@ -461,6 +603,8 @@ class TimeVaryingQP(CondensedQP):
         self._build_piqp(max_iter)
         self._piqp.settings.preconditioner_reuse_on_update = False  # P changes every step
         self._guess = np.zeros(self.rows, dtype=bool)
+        self._p_factor = None  # the factor of P's first M rows, with each new P
+        self._daqp_rows_ready = False
         self._A = np.zeros((Np, self.N, self.N))
         self._B = np.zeros((Np, self.N, self.m))
         self._d = np.zeros((Np, self.N))
@@ -470,6 +614,7 @@ class TimeVaryingQP(CondensedQP):
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
         self._given_free: np.ndarray | None = None
+        self.reset()
 
     def set_model(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None = None) -> None:
         """The model of this step: A (Np, N, N), B (Np, N, m), d (Np, N) (default 0); or one
@@ -540,8 +685,10 @@ class TimeVaryingQP(CondensedQP):
         if info != 0:  # R > 0 makes the block definite; only a non-finite model gets here
             raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
+        self._p_factor = factor  # DAQP's L
         self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
         self._dual_ready = False
+        self._daqp_rows_ready = False  # DAQP's rows G L⁻ᵀ, likewise
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
         """(n Np,) outputs of the step's model with the input held at v_prev (the given one

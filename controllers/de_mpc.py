@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from controllers.blas import single_threaded
-from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
+from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
 from controllers.linearization import BilinearLinearization
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.budget import check_memory
@@ -83,6 +83,9 @@ class DEMPCConfig:
     tol: float = 1e-6
     max_iter: int = 100
     active_set: bool = True
+    # The active-set solver tried before PIQP: DAQP (the bounded worst case: docs/control.md,
+    # "DAQP") or ours (controllers/condensed_qp.py).
+    qp_solver: str = "daqp"
     sqp_iterations: int = 1
     linearization: str = "plan"
     reference: str = "states"
@@ -105,6 +108,11 @@ class DEMPCConfig:
             raise ValueError(
                 f"controller.linearization must be one of {', '.join(LINEARIZATIONS)} "
                 f"(got {self.linearization!r})"
+            )
+        if self.qp_solver not in QP_SOLVERS:
+            raise ValueError(
+                f"controller.qp_solver must be one of {', '.join(QP_SOLVERS)} "
+                f"(got {self.qp_solver!r})"
             )
         if self.reference not in REFERENCES:
             raise ValueError(
@@ -219,6 +227,7 @@ class DEMPC:
             "tol": config.tol,
             "max_iter": config.max_iter,
             "active_set": config.active_set,
+            "qp_solver": config.qp_solver,
         }
         self.qp: CondensedQP
         if self.linearization is None:

@@ -14,7 +14,15 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from controllers import DEMPC, CondensedQP, DEMPCConfig, QPSolution, check_controller_config
+from controllers import (
+    DEMPC,
+    CondensedQP,
+    DEMPCConfig,
+    QPSolution,
+    check_controller_config,
+    condensed_qp,
+)
+from controllers.condensed_qp import PATHS, QP_SOLVERS
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.data import Episode
 from harness.data.driver import DriverKnowledge
@@ -105,6 +113,7 @@ def test_without_active_constraints_the_qp_is_the_unconstrained_optimum() -> Non
     np.testing.assert_allclose(by_piqp.dv.ravel(), closed_form, atol=1e-6)
 
 
+@pytest.mark.parametrize("qp_solver", QP_SOLVERS)
 @pytest.mark.parametrize(
     ("target", "input_box"),
     [
@@ -115,15 +124,16 @@ def test_without_active_constraints_the_qp_is_the_unconstrained_optimum() -> Non
     ],
 )
 def test_with_active_constraints_every_bound_holds_and_both_solvers_agree(
-    target: list[float], input_box: tuple[float, float]
+    target: list[float], input_box: tuple[float, float], qp_solver: str
 ) -> None:
     model = linear_model()
-    qp = make_qp(model, v_min=np.full(2, input_box[0]), v_max=np.full(2, input_box[1]))
+    box = {"v_min": np.full(2, input_box[0]), "v_max": np.full(2, input_box[1])}
+    qp = make_qp(model, **box, qp_solver=qp_solver)
     z, v_prev, y_ref = problem(model, np.array(target))
     assert (qp.residual(qp.unconstrained(z, v_prev, y_ref), v_prev) > TOL).any()
     hot = qp.solve(z, v_prev, y_ref)
     cold = qp.solve_piqp(z, v_prev, y_ref)
-    assert hot.ok and cold.ok and hot.path == "active_set"
+    assert hot.ok and cold.ok and hot.path == qp_solver
     for solution in (hot, cold):
         bounds_hold(qp, v_prev, solution.dv, solution.slack)
     active = qp.residual(np.append(hot.dv.ravel(), hot.slack), v_prev) > -TOL
@@ -136,7 +146,7 @@ def test_with_active_constraints_every_bound_holds_and_both_solvers_agree(
 
 def test_the_hot_start_finds_the_same_optimum_from_any_previous_active_set() -> None:
     model = linear_model()
-    qp = make_qp(model)
+    qp = make_qp(model, qp_solver="active_set")  # ours: its guess is ours to set
     rng = np.random.default_rng(1)
     for _ in range(20):
         z, v_prev, y_ref = problem(model, rng.uniform(0.1, 0.9, 3))
@@ -148,12 +158,74 @@ def test_the_hot_start_finds_the_same_optimum_from_any_previous_active_set() -> 
         )
 
 
+def tight_piqp(qp: CondensedQP) -> CondensedQP:
+    """``qp`` whose PIQP stops at 1e-11: the reference an exact active-set answer must meet."""
+    settings = qp._piqp.settings
+    settings.eps_abs = settings.eps_duality_gap_abs = 1e-11
+    settings.eps_rel = settings.eps_duality_gap_rel = 0.0
+    return qp
+
+
+@pytest.mark.parametrize(("Np", "Nc"), [(20, 10), (60, 50)])
+def test_daqp_answers_what_piqp_finds_on_random_qps(Np: int, Nc: int) -> None:
+    """One QP after another (DAQP warm-started from the last), each equal to PIQP's to 1e-6."""
+    model = linear_model()
+    qp, record = make_qp(model, Np=Np, Nc=Nc), tight_piqp(make_qp(model, Np=Np, Nc=Nc))
+    rng = np.random.default_rng(2)
+    paths = []
+    for _ in range(15):
+        z, _, y_ref = problem(model, rng.uniform(0.1, 0.9, 3), Np)
+        v_prev = rng.uniform(0.3, 0.7, 2)
+        solution, expected = qp.solve(z, v_prev, y_ref), record.solve_piqp(z, v_prev, y_ref)
+        assert solution.ok and expected.ok
+        np.testing.assert_allclose(solution.dv, expected.dv, rtol=0, atol=1e-6)
+        assert solution.slack == pytest.approx(expected.slack, abs=1e-6)
+        bounds_hold(qp, v_prev, solution.dv, solution.slack)
+        paths.append(solution.path)
+    assert set(paths) <= {"unconstrained", "daqp"} and paths.count("daqp") >= 10
+
+
+class BrokenDAQP:
+    """daqp.Model that ends at its iteration limit (exit flag -4) or, with flag 1, claims an
+    optimum with no row active: the unconstrained optimum, which violates this QP's rows."""
+
+    def __init__(self, flag: int) -> None:
+        self.flag, self.settings = flag, {}
+
+    def __call__(self) -> BrokenDAQP:  # stands for the class: daqp.Model()
+        return self
+
+    def setup(self, H: np.ndarray, f: np.ndarray, *_: object) -> tuple[int, float]:
+        self.size, self.rows = len(f), len(_[1])  # type: ignore[arg-type]
+        return 0, 0.0
+
+    def update(self, **_: object) -> int:
+        return 0
+
+    def solve(self) -> tuple[np.ndarray, float, int, dict]:
+        info = {"iterations": 10000, "lam": np.zeros(self.rows)}
+        return np.zeros(self.size), 0.0, self.flag, info
+
+
+@pytest.mark.parametrize("flag", [-4, 1])
+def test_a_daqp_failure_or_a_wrong_answer_falls_back_to_piqp(monkeypatch, flag: int) -> None:
+    model = linear_model()
+    z, v_prev, y_ref = problem(model, np.array([0.9, 0.8, 0.2]))
+    monkeypatch.setattr(condensed_qp.daqp, "Model", BrokenDAQP(flag))
+    qp = make_qp(model)
+    solution = qp.solve(z, v_prev, y_ref)
+    assert solution.ok and solution.path == "piqp"
+    np.testing.assert_allclose(solution.dv, qp.solve_piqp(z, v_prev, y_ref).dv, atol=1e-9)
+    monkeypatch.undo()  # the next solve sets DAQP up afresh, cold
+    assert qp.solve(z, v_prev, y_ref).path == "daqp"
+
+
 def test_slack_is_zero_unless_a_rate_limit_binds() -> None:
     model = linear_model()
     z, v_prev, y_ref = problem(model, np.array([0.9, 0.8, 0.2]))
     loose = make_qp(model, dv_max=np.array([10.0, 10.0]))  # only the input bounds can bind
     solution = loose.solve(z, v_prev, y_ref)
-    assert solution.path == "active_set" and solution.slack <= TOL
+    assert solution.path == "daqp" and solution.slack <= TOL
     tight = make_qp(model)
     solution = tight.solve(z, v_prev, y_ref)
     assert solution.slack > 1e-3
@@ -192,13 +264,23 @@ def test_act_returns_the_input_and_the_horizon_it_plans() -> None:
     u, info = controller.act(x, 0.0)
     assert isinstance(info, StepInfo) and not info.fallback
     assert info.predicted_states.shape == (12, 3) and info.planned_inputs.shape == (5, 2)
-    assert info.solve_path in ("unconstrained", "active_set", "piqp")
+    assert info.solve_path in ("unconstrained", "daqp", "piqp")
     np.testing.assert_allclose(info.planned_inputs[0], u)
     # The prediction is the model stepped under the plan, its last move held from Nc to Np.
     plan = np.vstack([info.planned_inputs, np.repeat(info.planned_inputs[-1:], 7, axis=0)])
     plant = ModelPlant(model, x0=x)
     stepped = np.array([plant.step(move) for move in plan])
     np.testing.assert_allclose(info.predicted_states, stepped, atol=1e-9)
+
+
+@pytest.mark.parametrize("qp_solver", QP_SOLVERS)
+def test_act_says_which_active_set_solver_answered(qp_solver: str) -> None:
+    model = linear_model()
+    controller = DEMPC(model, DEMPCConfig(qp_solver=qp_solver))
+    target = np.tile([30.0, 1.0, 0.5], (50, 1))  # far away: constraints active
+    controller.reset(np.vstack([[20.0, 0.0, 0.0], target]))
+    _, info = controller.act(np.array([20.0, 0.0, 0.0]), 0.0)
+    assert info.solve_path == qp_solver and info.solve_path in PATHS and not info.fallback
 
 
 def test_a_failed_solve_falls_back_to_the_previous_plan_and_says_so(monkeypatch, caplog):
@@ -273,6 +355,7 @@ def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
         ({"dt": 0.0}, "controller.dt must be > 0"),
         ({"tol": -1e-6}, "controller.tol must be > 0"),
         ({"active_set": "yes"}, "controller.active_set must be true or false"),
+        ({"qp_solver": "osqp"}, "controller.qp_solver must be one of daqp, active_set"),
         ({"pedal_max": 0.5}, "must lie within the plant's range"),
     ],
 )
@@ -290,6 +373,7 @@ def test_a_wrong_setting_names_its_key_in_one_line(settings: dict, message: str)
         (["controller.Q=-5"], "controller.Q must be positive definite"),
         (["controller.Q=[1,2]"], "controller.Q must be a scalar, 3 diagonal entries"),
         (["controller=de_mpc_long", "controller.Np=40"], "controller.Nc (50) must be <="),
+        (["controller.qp_solver=quadprog"], "controller.qp_solver must be one of daqp"),
     ],
 )
 def test_a_wrong_controller_config_fails_from_the_composed_config_alone(

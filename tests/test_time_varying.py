@@ -123,6 +123,30 @@ def test_a_constant_time_varying_model_solves_the_time_invariant_qp(
     )
 
 
+def test_daqp_follows_a_model_that_changes_every_step() -> None:
+    """A new Hessian each step (DAQP's rows G L⁻ᵀ rebuilt, its working set kept): every answer
+    equal to PIQP's to 1e-6, PIQP at 1e-11."""
+    C = random_time_varying(0)[3]
+    qp, record = TimeVaryingQP(C, 2, **SETTINGS), TimeVaryingQP(C, 2, **SETTINGS, max_iter=300)
+    settings = record._piqp.settings
+    settings.eps_abs = settings.eps_duality_gap_abs = 1e-11
+    settings.eps_rel = settings.eps_duality_gap_rel = 0.0
+    rng = np.random.default_rng(5)
+    paths = []
+    for seed in range(12):
+        A, B, d, _ = random_time_varying(seed)
+        qp.set_model(A, B, d)
+        record.set_model(A, B, d)
+        z, v_prev = rng.normal(size=5), rng.uniform(0.3, 0.7, size=2)
+        y_ref = qp.free_response(z, v_prev) + rng.normal(scale=0.05, size=3 * SETTINGS["Np"])
+        solution, expected = qp.solve(z, v_prev, y_ref), record.solve_piqp(z, v_prev, y_ref)
+        assert solution.ok and expected.ok
+        np.testing.assert_allclose(solution.dv, expected.dv, rtol=0, atol=1e-6)
+        assert solution.slack == pytest.approx(expected.slack, abs=1e-6)
+        paths.append(solution.path)
+    assert set(paths) <= {"unconstrained", "daqp"} and paths.count("daqp") >= 8
+
+
 def test_a_wrongly_shaped_model_is_refused() -> None:
     tv = TimeVaryingQP(np.eye(3), 2, **SETTINGS)
     with pytest.raises(ValueError, match="time-varying model must be"):
