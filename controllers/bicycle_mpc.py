@@ -41,6 +41,8 @@ class BicycleMPCConfig(DEMPCConfig):
             self.learner()
         except TypeError as error:  # an unknown key
             raise ValueError(f"controller.model: {error}") from None
+        except ValueError as error:  # the model's own check names its key as a learner's
+            raise ValueError(str(error).replace("learner.", "controller.model.", 1)) from None
 
     def learner(self) -> SingleTrack:
         """The unfitted single-track model this controller runs on."""
