@@ -298,8 +298,10 @@ def test_a_read_only_root_says_so_and_suggests_data_root(
 
 # Four drives on two workers: when the first is stored, two more are under way and one waits, so
 # the signal always lands mid-collection, even on a loaded machine.
-KILLED = {"episodes": 4, "min_steps": 5000, "max_steps": 5000}
-SPLIT = {"train": 2, "validation": 1, "test": 1}
+# Enough episodes that a signal sent once the first is stored always lands mid-collection (with
+# 4, an idle machine finished the rest in the ~0.1 s between detection and signal).
+KILLED = {"episodes": 12, "min_steps": 5000, "max_steps": 5000}
+SPLIT = {"train": 10, "validation": 1, "test": 1}
 
 
 def killed_config(root: Path, workers: int) -> DataConfig:
@@ -354,7 +356,7 @@ def test_a_killed_collection_leaves_no_process_behind_and_resumes_to_the_same_by
         f"hydra.run.dir={tmp_path / 'run'}",
         f"data.root={root}",
         "data.workers=2",
-        "data.split={train: 2, validation: 1, test: 1}",
+        "data.split={" + ", ".join(f"{k}: {v}" for k, v in SPLIT.items()) + "}",
         *(f"data.{key}={value}" for key, value in KILLED.items()),
     ]
     with (tmp_path / "stderr.txt").open("wb") as stderr:
