@@ -50,6 +50,9 @@ LINEARIZATIONS = ("plan", "frozen")
 REFERENCES = ("states", "path")
 # Path following: the speed in the error kinematics, to this band (m/s): 1 % at 80 km/h.
 SPEED_BAND_MPS = 0.25
+# Where the car stands for the path QP: lateral error (m), heading error (rad), the banded speed
+# v̄ (m/s) and the curvature at the Np steps ahead (1/m).
+_Where = tuple[float, float, float, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -248,7 +251,6 @@ class DEMPC:
             self.path_qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **settings)
         self._path: ReferencePath | None = None
         self._path_hint: int | None = None
-        self._frenet_now: tuple[float, float, float, np.ndarray] = (0.0, 0.0, 0.0, np.zeros(0))
         self._reference: np.ndarray | None = None
         self._reference_steps = 0
         self._start(None)
@@ -317,8 +319,8 @@ class DEMPC:
             if pose is None:
                 raise ValueError("a DE-MPC run that follows a path needs the car's pose in act()")
             qp = self.path_qp
-            y_ref = self._path_reference(x, pose, y_ref)
-            solution = self._solve_path(z, v_prev, y_ref, w)
+            y_ref, where = self._path_reference(x, pose, y_ref)
+            solution = self._solve_path(z, v_prev, y_ref, w, where)
         elif self.linearization is None:
             if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
                 shift = self.qp.phi_w @ w
@@ -379,10 +381,12 @@ class DEMPC:
             return A @ z + B @ v
         return np.asarray(self.linearization.step(z, v), dtype=float)
 
-    def _path_reference(self, x: np.ndarray, pose: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
+    def _path_reference(
+        self, x: np.ndarray, pose: np.ndarray, y_ref: np.ndarray
+    ) -> tuple[np.ndarray, _Where]:
         """Locate the car on the path; the path QP's references (5 Np,): the reference's speed
         (and vy, normally unweighted) by time, the yaw rate the path asks for where the car
-        will be (v̄ κ: by place, not time), zero lateral and heading error. Keeps what
+        will be (v̄ κ: by place, not time), zero lateral and heading error; and what
         :meth:`_solve_path` needs: the errors now, v̄ and the curvature ahead."""
         assert self._path is not None
         frenet = self._path.locate(pose, self._path_hint)
@@ -393,19 +397,19 @@ class DEMPC:
         # The kinematics' v̄ to SPEED_BAND_MPS: Θ depends on nothing else for a lifted-linear
         # model, so its path QP (Hessian, dual) is rebuilt only when the speed changes band.
         banded = SPEED_BAND_MPS * round(speed / SPEED_BAND_MPS)
-        self._frenet_now = (
-            frenet.lateral_error_m,
-            frenet.heading_error_rad,
-            banded,
-            curvature[:-1],
-        )
+        where = (frenet.lateral_error_m, frenet.heading_error_rad, banded, curvature[:-1])
         states_ref = self.normalizer.states_inverse(y_ref.reshape(self.Np, STATES))
         states_ref[:, 2] = speed * curvature[1:]
         errors_ref = np.zeros((self.Np, ERRORS))
-        return np.hstack([self.normalizer.states(states_ref), errors_ref]).ravel()
+        return np.hstack([self.normalizer.states(states_ref), errors_ref]).ravel(), where
 
     def _solve_path(
-        self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray, w: np.ndarray | None
+        self,
+        z: np.ndarray,
+        v_prev: np.ndarray,
+        y_ref: np.ndarray,
+        w: np.ndarray | None,
+        where: _Where,
     ) -> QPSolution:
         """The path QP on the model's prediction (its own, linearised as in state tracking,
         with the disturbance w where offset-free) extended by the errors to the path
@@ -415,7 +419,7 @@ class DEMPC:
         y0 = self.C @ z
 
         def set_prediction(theta: np.ndarray, free: np.ndarray) -> None:
-            path_qp.set_prediction(*frenet.extend(theta, free, y0, *self._frenet_now))
+            path_qp.set_prediction(*frenet.extend(theta, free, y0, *where))
 
         if self.linearization is None:
             free = states_qp.free_response(z, v_prev)

@@ -54,8 +54,8 @@ def small(cls, checkpoint_dir: Path | None = None, **overrides):
     }
     if cls is DNN:
         learner = DNN(hidden=[16, 16], horizon=8, training=training, **overrides)
-    else:
-        learner = DeepEDMD(
+    else:  # Deep EDMD or a subclass (bilinear Deep EDMD)
+        learner = cls(
             lifted_dim=4,
             encoder_hidden=[16],
             decoder_hidden=[16],
@@ -404,18 +404,8 @@ def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(
     from learners.bilinear_deep_edmd import BilinearDeepEDMD
 
     args = (data["train"], data["validation"], data["normalizer"])
-    shape = {"lifted_dim": 4, "encoder_hidden": [16], "decoder_hidden": [16], "horizon": 8}
-    training = {
-        "max_steps": 30,
-        "batch_size": 16,
-        "lr": 3e-3,
-        "eval_every_steps": 10,
-        "progress": False,
-    }
-    plain = DeepEDMD(**shape, training=training).fit(*args)
-    model = BilinearDeepEDMD(
-        **shape, training=training, ridge_prior="zero", bilinear_ridge=0.0, bilinear_training=False
-    )
+    plain = small(DeepEDMD).fit(*args)
+    model = small(BilinearDeepEDMD, ridge_prior="zero", bilinear_ridge=0.0, bilinear_training=False)
     model.fit(*args)
     np.testing.assert_array_equal(plain.params_.data, model.params_.data)
     assert isinstance(model, BilinearModel) and model.H_.shape == (2, 7, 7)
@@ -455,16 +445,7 @@ def small_bilinear(**overrides):
     """A bilinear Deep EDMD as small and short as :func:`small`'s Deep EDMD."""
     from learners.bilinear_deep_edmd import BilinearDeepEDMD
 
-    training = {
-        "max_steps": 30,
-        "batch_size": 16,
-        "lr": 3e-3,
-        "eval_every_steps": 10,
-        "progress": False,
-        **overrides.pop("training", {}),
-    }
-    shape = {"lifted_dim": 4, "encoder_hidden": [16], "decoder_hidden": [16], "horizon": 8}
-    return BilinearDeepEDMD(**shape, training=training, **overrides)
+    return small(BilinearDeepEDMD, **overrides)
 
 
 @pytest.mark.parametrize(

@@ -244,6 +244,7 @@ class Pipeline:
             for name, reference in self.references.items()
             if isinstance(reference, CourseReference)
         }
+        centre_lines = {name: course.path() for name, course in courses.items()}
         paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
         by_controller: dict[str, dict[str, Any]] = {}
         for controller_name, make_controller in self.controllers.items():
@@ -265,7 +266,7 @@ class Pipeline:
                     figure_path=output_dir / f"{stem}.png",
                     arrays_path=output_dir / f"{stem}.npz",
                     tab_priority=2 if name in courses else 1,  # the recording opens on a course
-                    path=courses[name].path() if name in courses else None,
+                    path=centre_lines.get(name),
                 )
                 if name in courses:
                     metrics["path"] = {
