@@ -35,6 +35,15 @@ ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "sin": np.sin,
 }
 
+DERIVATIVES: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "tanh": lambda a: 1.0 - np.tanh(a) ** 2,
+    "sigmoid": lambda a: 0.25 * (1.0 - np.tanh(0.5 * a) ** 2),
+    "relu": lambda a: (a > 0).astype(np.float64),
+    "sin": np.cos,
+}
+
+CENTER_DRAWS = ("normal", "samples")
+
 
 class Dictionary(ABC):
     """Observables phi: (..., n) -> (..., K) of normalized states, drawn once from data.
@@ -60,6 +69,10 @@ class Dictionary(ABC):
     @abstractmethod
     def __call__(self, x_n: np.ndarray) -> np.ndarray:
         """phi(x_n): (..., n) -> (..., K)."""
+
+    def jacobian(self, x_n: np.ndarray) -> np.ndarray:
+        """d phi / d x_n: (..., n) -> (..., K, n), for models an MPC linearises."""
+        raise NotImplementedError(f"{type(self).__name__} has no jacobian")
 
     @property
     def hyperparameters(self) -> dict[str, Any]:
@@ -100,12 +113,23 @@ def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
 
 @dataclass(eq=False)
 class ThinPlateRBF(Dictionary):
-    """``num_centers`` thin-plate-spline radial basis functions (0 gives DMD with inputs)."""
+    """``num_centers`` thin-plate-spline radial basis functions (0 gives DMD with inputs).
+
+    Args:
+        num_centers: K.
+        center_draw: ``normal``: centres ~ N(mean, std²) of the data, per coordinate (the
+            paper's EDMD); ``samples``: K distinct data points. In more than three dimensions
+            (state and input) independent normal draws land where the data never goes, and a
+            thin-plate RBF grows like r² log r there; centres on the data keep every observable
+            anchored where the fit sees it (``learners/input_edmd.py`` measures the difference).
+    """
 
     num_centers: int = 100
+    center_draw: str = "normal"
 
     def __post_init__(self) -> None:
         self.num_centers = check_int("dictionary.num_centers", self.num_centers, 0)
+        self.center_draw = check_choice("dictionary.center_draw", self.center_draw, CENTER_DRAWS)
 
     @property
     def size(self) -> tuple[str, int]:
@@ -116,6 +140,15 @@ class ThinPlateRBF(Dictionary):
         return self.num_centers * n
 
     def fit(self, states_n: np.ndarray, rng: np.random.Generator) -> Self:
+        if self.center_draw == "samples":
+            if len(states_n) < self.num_centers:
+                raise ValueError(
+                    f"dictionary.num_centers={self.num_centers} centres drawn from the data need "
+                    f"as many samples, the training drives hold {len(states_n)}"
+                )
+            rows = rng.choice(len(states_n), self.num_centers, replace=False)
+            self.centers_ = np.array(states_n[np.sort(rows)], dtype=np.float64)
+            return self
         mean, std = states_n.mean(0), states_n.std(0)
         self.centers_ = rng.normal(mean, std, size=(self.num_centers, states_n.shape[1]))
         return self
@@ -124,6 +157,12 @@ class ThinPlateRBF(Dictionary):
         r2 = np.sum((x_n[..., None, :] - self.centers_) ** 2, axis=-1)
         # r^2 log r = r^2 log(r^2) / 2, continuous with value 0 at r = 0
         return 0.5 * r2 * np.log(np.where(r2 > 0, r2, 1.0))
+
+    def jacobian(self, x_n: np.ndarray) -> np.ndarray:
+        """(log r² + 1)(x − c) for each centre c: continuous, 0 at r = 0."""
+        offset = x_n[..., None, :] - self.centers_
+        r2 = np.sum(offset**2, axis=-1, keepdims=True)
+        return np.where(r2 > 0, np.log(np.where(r2 > 0, r2, 1.0)) + 1.0, 0.0) * offset
 
     def state(self) -> dict[str, np.ndarray]:
         return {"centers": self.centers_}
@@ -167,6 +206,11 @@ class RandomFeatures(Dictionary):
 
     def __call__(self, x_n: np.ndarray) -> np.ndarray:
         return ACTIVATIONS[self.activation](x_n @ self.weights_.T + self.biases_)
+
+    def jacobian(self, x_n: np.ndarray) -> np.ndarray:
+        """sigma'(w . x + b) w for each unit (by the activation's derivative)."""
+        slope = DERIVATIVES[self.activation](x_n @ self.weights_.T + self.biases_)
+        return slope[..., :, None] * self.weights_
 
     def state(self) -> dict[str, np.ndarray]:
         return {"weights": self.weights_, "biases": self.biases_}

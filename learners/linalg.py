@@ -26,25 +26,42 @@ def ridge_lstsq(chunks: Iterable[tuple[np.ndarray, np.ndarray]], ridge: float = 
     Returns:
         Theta (d, q), float64.
     """
-    r: np.ndarray | None = None
-    count = 0
-    d = q = 0
-    for w, y in chunks:
-        w = np.asarray(w, dtype=np.float64)
-        y = np.asarray(y, dtype=np.float64)
-        d, q = w.shape[1], y.shape[1]
-        block = np.hstack([w, y])
-        count += len(block)
-        r = np.linalg.qr(block if r is None else np.vstack([r, block]), mode="r")
-    if r is None or count == 0:
-        raise ValueError("least squares on zero samples")
-    if ridge > 0:
-        penalty = np.hstack([np.sqrt(ridge * count) * np.eye(d), np.zeros((d, q))])
-        r = np.linalg.qr(np.vstack([r, penalty]), mode="r")
-    if r.shape[0] < d + q:  # fewer samples than unknowns: pad R with zero rows
-        r = np.vstack([r, np.zeros((d + q - r.shape[0], d + q))])
-    theta, *_ = np.linalg.lstsq(r[:d, :d], r[:d, d:], rcond=None)
-    return theta
+    return Triangle.of(chunks).solve(ridge)
+
+
+class Triangle:
+    """The R of the QR of [W | Y], reduced once: every ridge is then one small solve."""
+
+    def __init__(self, r: np.ndarray, count: int, regressors: int) -> None:
+        self.r, self.count, self.regressors = r, count, regressors
+
+    @classmethod
+    def of(cls, chunks: Iterable[tuple[np.ndarray, np.ndarray]]) -> Triangle:
+        """Reduce the (W, Y) row blocks, W (k, d) and Y (k, q), chunk by chunk."""
+        r: np.ndarray | None = None
+        count = d = 0
+        for w, y in chunks:
+            w = np.asarray(w, dtype=np.float64)
+            y = np.asarray(y, dtype=np.float64)
+            d = w.shape[1]
+            block = np.hstack([w, y])
+            count += len(block)
+            r = np.linalg.qr(block if r is None else np.vstack([r, block]), mode="r")
+        if r is None or count == 0:
+            raise ValueError("least squares on zero samples")
+        return cls(r, count, d)
+
+    def solve(self, ridge: float = 0.0) -> np.ndarray:
+        """Theta (d, q) of :func:`ridge_lstsq` for this ``ridge``."""
+        r, d = self.r, self.regressors
+        q = r.shape[1] - d
+        if ridge > 0:
+            penalty = np.hstack([np.sqrt(ridge * self.count) * np.eye(d), np.zeros((d, q))])
+            r = np.linalg.qr(np.vstack([r, penalty]), mode="r")
+        if r.shape[0] < d + q:  # fewer samples than unknowns: pad R with zero rows
+            r = np.vstack([r, np.zeros((d + q - r.shape[0], d + q))])
+        theta, *_ = np.linalg.lstsq(r[:d, :d], r[:d, d:], rcond=None)
+        return theta
 
 
 def row_chunks(a: np.ndarray, size: int) -> Iterable[slice]:

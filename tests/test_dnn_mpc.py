@@ -105,11 +105,12 @@ def test_a_loaded_dnn_linearises_as_the_fitted_one(dnn: DNN, tmp_path: Path) -> 
 
 
 class OwnModelPlant:
-    """A plant that is the DNN itself: the controller meets its own model."""
+    """A plant that is the model itself (a DNN, an input EDMD): the controller meets its own
+    model."""
 
     dt = 0.01
 
-    def __init__(self, model: DNN, x0: np.ndarray) -> None:
+    def __init__(self, model: LinearizableModel, x0: np.ndarray) -> None:
         self.model, self.x0 = model, x0
         self.reset()
 

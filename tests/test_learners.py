@@ -26,14 +26,16 @@ from learners import (
     ThinPlateRBF,
 )
 from learners.base import FORMAT_VERSION
+from learners.input_edmd import InputEDMD
 from tests.toydata import drive_episodes
 
-NAMES = ("edmd", "elm_edmd", "dnn", "deep_edmd")
+NAMES = ("edmd", "elm_edmd", "dnn", "deep_edmd", "input_edmd")
 
 # Budgets small enough for a unit test (seconds), large enough to learn something.
 TINY = {
     "edmd": lambda: EDMD(ThinPlateRBF(num_centers=50)),
     "elm_edmd": lambda: EDMD(RandomFeatures(num_features=50), ridge=1e-8),
+    "input_edmd": lambda: InputEDMD(ThinPlateRBF(num_centers=100, center_draw="samples")),
     "dnn": lambda: DNN(
         hidden=[64, 64],
         horizon=20,
