@@ -31,9 +31,15 @@ from harness.tracking import track
 from learners.base import Learner
 from learners.bilinear import BilinearEDMD
 from learners.edmd import EDMD
+from learners.input_edmd import InputEDMD
 from learners.single_track import SingleTrack
 
-LEARNERS = {"single_track": SingleTrack, "edmd": EDMD, "bilinear_edmd": BilinearEDMD}
+LEARNERS = {
+    "single_track": SingleTrack,
+    "edmd": EDMD,
+    "bilinear_edmd": BilinearEDMD,
+    "input_edmd": InputEDMD,
+}
 
 
 def _weights(text: str) -> tuple[float, ...]:

@@ -7,7 +7,8 @@ ones (EDMD, Deep EDMD) also follow :class:`learners.base.KoopmanLearner` (``A_``
 (:mod:`learners.dictionaries`): thin-plate RBFs (the paper's EDMD) or random ELM units
 (ELM-EDMD). ``learners.load(path)`` reads any saved learner. Configs:
 ``conf/learner/*.yaml``; the bilinear ones (:mod:`learners.bilinear`,
-:mod:`learners.bilinear_deep_edmd`) let the input multiply the lifted state.
+:mod:`learners.bilinear_deep_edmd`) let the input multiply the lifted state; input EDMD
+(:mod:`learners.input_edmd`) lifts the state and the input together and re-lifts every step.
 """
 
 from learners.base import KoopmanLearner, Learner, load

@@ -130,7 +130,10 @@ class InputEDMD(Learner):
         self.normalizer_ = normalizer
         self.C_ = np.eye(n)
         points = np.concatenate(
-            [np.hstack([normalizer.states(e.states), normalizer.inputs(e.inputs)]) for e in train]
+            [
+                self._dictionary_points(normalizer.states(e.states), normalizer.inputs(e.inputs))
+                for e in train
+            ]
         )
         self.dictionary.fit(points, np.random.default_rng(self.seed))
 
@@ -209,6 +212,10 @@ class InputEDMD(Learner):
             for k in range(v.shape[-2]):
                 x[..., k + 1, :] = self.step(x[..., k, :], v[..., k, :])
         return x
+
+    def _dictionary_points(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """What the dictionary's centres are drawn from: y = [x_n; v]."""
+        return np.concatenate([x_n, v], axis=-1)
 
     def _observables(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
         """w = [x_n; v; 1; phi([x_n; v])], (..., regressors)."""
