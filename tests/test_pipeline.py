@@ -206,6 +206,24 @@ def test_a_bilinear_model_is_tracked_through_its_linearisation_beside_the_baseli
     assert len(metrics["prediction"]["step_response"]) == 8
 
 
+def test_input_edmd_runs_the_pipeline_through_its_linearisation(edmd_run) -> None:
+    tmp, _, _ = edmd_run
+    metrics = run_main(
+        tmp,
+        tmp / "input",
+        "learner=input_edmd",
+        "learner.dictionary.num_centers=30",  # the tiny drives hold 300-400 samples
+        "task.extra_controllers.bicycle_mpc.model.min_speed_mps=1.0",
+    )
+    assert metrics["training"]["learner"] == "input_edmd"
+    tracking = metrics["tracking"]
+    assert list(tracking["controllers"]) == ["de_mpc", "bicycle_mpc"]
+    assert tracking["solver_failures"] == 0
+    assert all(np.isfinite(v) for v in tracking["rmse"].values())
+    assert "not a lifted model" in metrics["spectrum"]["skipped"]
+    assert len(metrics["prediction"]["step_response"]) == 8
+
+
 def test_generalization_evaluates_the_model_on_other_plants_at_every_horizon(
     tmp_path: Path,
 ) -> None:
