@@ -131,6 +131,12 @@ class Learner(ABC):
         """The constructor keywords this learner was built with (what its config holds)."""
         return dict(self._hyperparameters)
 
+    @property
+    def fit_summary(self) -> dict[str, Any]:
+        """What the fit chose that its hyperparameters do not say (JSON-ready; the run writes it
+        to ``training.fit``): empty unless a learner chooses something, as input EDMD its ridge."""
+        return {}
+
     # -- for subclasses -------------------------------------------------------------------------
 
     _hyperparameters: dict[str, Any]

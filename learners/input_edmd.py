@@ -167,6 +167,19 @@ class InputEDMD(Learner):
         log.info("input_edmd: ridge %.0e chosen on the validation drives", self.ridge_)
         return self
 
+    @property
+    def fit_summary(self) -> dict[str, Any]:
+        """The chosen ridge and, after a fit here, every candidate's validation score (null where
+        its rollout diverged)."""
+        summary: dict[str, Any] = {"ridge": self.ridge_}
+        scores = getattr(self, "validation_scores_", None)
+        if scores:
+            summary["validation_scores"] = {
+                f"{ridge:g}": (score if np.isfinite(score) else None)
+                for ridge, score in scores.items()
+            }
+        return summary
+
     def regressor_count(self, n: int = STATE_DIM, m: int = INPUT_DIM) -> int:
         """Columns of the least squares: y = [x_n; v], the constant, and the observables."""
         return n + m + int(self.include_constant) + self.dictionary.size[1]

@@ -216,6 +216,8 @@ def test_input_edmd_runs_the_pipeline_through_its_linearisation(edmd_run) -> Non
         "task.extra_controllers.bicycle_mpc.model.min_speed_mps=1.0",
     )
     assert metrics["training"]["learner"] == "input_edmd"
+    fit = metrics["training"]["fit"]  # the ridge the validation drive chose, and every score
+    assert any(float(ridge) == fit["ridge"] for ridge in fit["validation_scores"])
     tracking = metrics["tracking"]
     assert list(tracking["controllers"]) == ["de_mpc", "bicycle_mpc"]
     assert tracking["solver_failures"] == 0

@@ -173,13 +173,16 @@ class Pipeline:
             source = "trained"
         fit_time = time.perf_counter() - start
         model_file = learner.save(output_dir / f"model_{self.learner_name}.pt")
-        return learner, {
+        summary = {
             "learner": self.learner_name,
             "source": source,
             "fit_time_s": fit_time,
             "model_path": str(model_file),
             "train_frames": sum(len(e) for e in dataset.train),
         }
+        if learner.fit_summary:
+            summary["fit"] = learner.fit_summary
+        return learner, summary
 
     def _predict(
         self,
