@@ -268,6 +268,9 @@ def test_the_learners_package_imports_no_recorder_figures_or_config_system() -> 
         ("deep_edmd", "learner.alpha.xo=-0.3", "learner.alpha.xo"),
         ("deep_edmd", "learner.prediction_output=both", "learner.prediction_output"),
         ("deep_edmd", "learner.random_layer.std=-1", "learner.random_layer.std"),
+        ("input_edmd", "learner.dictionary.center_draw=grid", "learner.dictionary.center_draw"),
+        ("input_edmd", "learner.ridge=[1e-6,-1]", "learner.ridge"),
+        ("input_edmd", "learner.ridge=[]", "learner.ridge"),
     ],
 )
 def test_a_wrong_learner_value_names_its_key(name: str, override: str, key: str) -> None:
