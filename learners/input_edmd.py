@@ -150,20 +150,16 @@ class InputEDMD(Learner):
         scale = np.sqrt(squares / pairs)
         scale[scale < 1e-12] = 1.0
         triangle = Triangle.of((w / scale, y) for w, y in rows())
-        self.validation_scores_: dict[float, float] = {}
-        best: tuple[float, float, np.ndarray] | None = None
-        for ridge in self.ridges:
-            self.theta_ = triangle.solve(ridge) / scale[:, None]
-            score = self._score(validation) if len(self.ridges) > 1 else 0.0
-            self.validation_scores_[ridge] = score
-            if np.isfinite(score) and (best is None or score < best[0]):
-                best = (score, ridge, self.theta_)
-        if best is None:
+        thetas = np.stack([triangle.solve(ridge) / scale[:, None] for ridge in self.ridges])
+        scores = self._scores(thetas, validation) if len(self.ridges) > 1 else np.zeros(1)
+        self.validation_scores_ = dict(zip(self.ridges, scores.tolist(), strict=True))
+        if not np.isfinite(scores).any():
             raise ValueError(
                 f"input_edmd: every ridge in learner.ridge={self.ridges} diverged on the "
                 "validation drives' open-loop rollouts: add larger weights or fewer observables"
             )
-        _, self.ridge_, self.theta_ = best
+        best = int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))
+        self.ridge_, self.theta_ = self.ridges[best], thetas[best]
         log.info("input_edmd: ridge %.0e chosen on the validation drives", self.ridge_)
         return self
 
@@ -194,18 +190,23 @@ class InputEDMD(Learner):
         what = f"input EDMD with {size} observables on drives of {episode_frames} steps"
         check_memory(f"learner.{key}", what, 8 * floats)
 
-    def _score(self, episodes: Sequence[Episode]) -> float:
-        """Mean over drives of sum_i (RMSE_i / span_i)²: open loop, normalized units."""
-        scores = []
+    def _scores(self, thetas: np.ndarray, episodes: Sequence[Episode]) -> np.ndarray:
+        """Per candidate Theta (R, regressors, n): the mean over drives of sum_i (RMSE_i /
+        span_i)², open loop in normalized units; inf where a rollout diverged. The R rollouts
+        of a drive run together, one step for all of them at a time."""
+        totals = np.zeros(len(thetas))
         for e in episodes:
-            x_n = self._rollout(
-                self.normalizer_.states(e.states[0]), self.normalizer_.inputs(e.inputs[:-1])
-            )
-            with np.errstate(over="ignore", invalid="ignore"):
-                error = np.mean((x_n - self.normalizer_.states(e.states)) ** 2, axis=0)
-            scores.append(float(np.sum(error)))
-        score = float(np.mean(scores))
-        return score if np.isfinite(score) else float("inf")
+            target, v = self.normalizer_.states(e.states), self.normalizer_.inputs(e.inputs)
+            x = np.repeat(target[:1], len(thetas), axis=0)
+            squared = np.zeros(len(thetas))
+            with np.errstate(over="ignore", invalid="ignore"):  # diverging candidates: inf/nan
+                for k in range(len(e) - 1):
+                    w = self._observables(x, np.broadcast_to(v[k], (len(thetas), v.shape[1])))
+                    x = x + np.einsum("rd,rdn->rn", w, thetas)
+                    squared += np.sum((x - target[k + 1]) ** 2, axis=1)
+            totals += squared / len(e)
+        scores = totals / len(episodes)
+        return np.where(np.isfinite(scores), scores, np.inf)
 
     # -- prediction -------------------------------------------------------------------------
 

@@ -98,7 +98,9 @@ def test_several_ridges_without_validation_drives_are_refused_in_one_line() -> N
 
 
 def test_a_fit_whose_every_ridge_diverges_is_refused_in_one_line(monkeypatch) -> None:
-    monkeypatch.setattr(InputEDMD, "_score", lambda self, episodes: float("inf"))
+    monkeypatch.setattr(
+        InputEDMD, "_scores", lambda self, thetas, episodes: np.full(len(thetas), np.inf)
+    )
     with pytest.raises(ValueError, match="diverged on the validation drives") as info:
         InputEDMD(ThinPlateRBF(20, center_draw="samples"), ridge=[1e-6, 1e-4]).fit(
             episodes_of(affine_step), episodes_of(affine_step, 1, seed=1), NORMALIZER
