@@ -1,4 +1,4 @@
-"""Dictionaries of observables phi(x_n) for the lifted-linear learner (:class:`learners.edmd.EDMD`).
+"""Dictionaries of observables phi(x_n) for EDMD and its variants (:class:`learners.edmd.EDMD`).
 
 A dictionary is the one thing that distinguishes the paper's EDMD baseline from ELM-EDMD: the
 regression on z = [x_n; 1; phi(x_n)] is the same. Each dictionary is a small class built from
@@ -7,7 +7,8 @@ training states by :meth:`Dictionary.fit` and then fixed. A new dictionary is on
 (or anywhere under ``learners``) plus a ``dictionary:`` block in a learner config.
 
 - :class:`ThinPlateRBF`: phi_i(x) = ||x - c_i||^2 log ||x - c_i|| (the paper's EDMD, Sec. VI),
-  centres c_i ~ N(mean, std^2) of the normalized training states, per dimension.
+  centres c_i ~ N(mean, std^2) of the normalized training states, per dimension, or drawn among
+  the data points (input EDMD's observables of state and input).
 - :class:`RandomFeatures`: phi(x) = sigma(W x + b), W and b uniform and never trained (the
   paper's ELM-EDMD, an extreme learning machine's hidden layer, Huang's classic ELM). On min-max
   normalized states in [0, 1]^3 a scale of a few puts the units' kinks and saturations inside
