@@ -316,6 +316,15 @@ def check_episodes(
                 raise ValueError(f"{role} episode {e.name!r}: {field} contain NaN or inf")
 
 
+def check_fit_data(
+    train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
+) -> None:
+    """What every ``fit`` checks first: the training episodes, and the validation ones if any."""
+    check_episodes(train, "train", normalizer)
+    if validation:
+        check_episodes(validation, "validation", normalizer)
+
+
 def check_rollout_args(x0: np.ndarray, inputs: np.ndarray, n: int, m: int) -> tuple:
     """Validate predict() arguments; returns float64 arrays (x0 (..., n), inputs (..., T, m))."""
     x0 = np.asarray(x0, dtype=np.float64)

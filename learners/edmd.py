@@ -27,7 +27,7 @@ from learners.base import (
     INPUT_DIM,
     STATE_DIM,
     KoopmanLearner,
-    check_episodes,
+    check_fit_data,
     check_int,
     check_nonnegative,
     check_rollout_args,
@@ -100,9 +100,7 @@ class EDMD(KoopmanLearner):
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on all one-step pairs of ``train``; ``validation`` is only checked."""
-        check_episodes(train, "train", normalizer)
-        if validation:
-            check_episodes(validation, "validation", normalizer)
+        check_fit_data(train, validation, normalizer)
         n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
         self.check_size(max(len(e) for e in train), n, m)
         self._check_enough_pairs(sum(len(e) - 1 for e in train), n, m)

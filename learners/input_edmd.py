@@ -45,7 +45,7 @@ from learners.base import (
     INPUT_DIM,
     STATE_DIM,
     Learner,
-    check_episodes,
+    check_fit_data,
     check_int,
     check_nonnegative,
     check_rollout_args,
@@ -110,10 +110,8 @@ class InputEDMD(Learner):
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on every one-step pair of ``train``; the ridge by ``validation``."""
-        check_episodes(train, "train", normalizer)
-        if validation:
-            check_episodes(validation, "validation", normalizer)
-        elif len(self.ridges) > 1:
+        check_fit_data(train, validation, normalizer)
+        if not validation and len(self.ridges) > 1:
             raise ValueError(
                 f"learner.ridge lists {len(self.ridges)} weights to choose from on the "
                 "validation drives, but there are none: give one weight or a validation split"
@@ -145,11 +143,12 @@ class InputEDMD(Learner):
                     w = self._observables(x_n[:-1][part], v[:-1][part])
                     yield w, x_n[1:][part] - x_n[:-1][part]
 
-        # The ridge weighs every observable by its spread: columns scaled to unit RMS.
-        squares = sum(np.sum(w**2, axis=0) for w, _ in rows())
-        scale = np.sqrt(squares / pairs)
+        # The ridge weighs every observable by its spread: columns scaled to unit RMS (on the
+        # reduced triangle, so the observables are evaluated once).
+        triangle = Triangle.of(rows())
+        scale = triangle.column_rms()
         scale[scale < 1e-12] = 1.0
-        triangle = Triangle.of((w / scale, y) for w, y in rows())
+        triangle = triangle.scaled(scale)
         thetas = np.stack([triangle.solve(ridge) / scale[:, None] for ridge in self.ridges])
         scores = self._scores(thetas, validation) if len(self.ridges) > 1 else np.zeros(1)
         self.validation_scores_ = dict(zip(self.ridges, scores.tolist(), strict=True))

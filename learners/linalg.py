@@ -51,6 +51,17 @@ class Triangle:
             raise ValueError("least squares on zero samples")
         return cls(r, count, d)
 
+    def column_rms(self) -> np.ndarray:
+        """RMS over the samples of each regressor column (W^T W = R^T R: no pass over the data)."""
+        w = self.r[:, : self.regressors]
+        return np.sqrt(np.sum(w * w, axis=0) / self.count)
+
+    def scaled(self, scale: np.ndarray) -> Triangle:
+        """The triangle of [W / scale | Y]: R's regressor columns divided (still triangular)."""
+        r = self.r.copy()
+        r[:, : self.regressors] /= scale
+        return Triangle(r, self.count, self.regressors)
+
     def solve(self, ridge: float = 0.0) -> np.ndarray:
         """Theta (d, q) of :func:`ridge_lstsq` for this ``ridge``."""
         r, d = self.r, self.regressors

@@ -44,7 +44,7 @@ import torch
 from scipy.optimize import minimize_scalar
 
 from harness.data.episode import Episode, MinMaxNormalizer, pedal_scale
-from learners.base import Learner, check_episodes, check_positive, check_rollout_args
+from learners.base import Learner, check_fit_data, check_positive, check_rollout_args
 
 __all__ = ["NAMES", "SingleTrack"]
 
@@ -102,9 +102,7 @@ class SingleTrack(Learner):
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on the Euler one-step derivatives of ``train`` (module docstring)."""
-        check_episodes(train, "train", normalizer)
-        if validation:
-            check_episodes(validation, "validation", normalizer)
+        check_fit_data(train, validation, normalizer)
         steps = np.concatenate([np.diff(e.time_s) for e in train])
         dt = float(np.median(steps))
         x = np.concatenate([e.states[:-1] for e in train])

@@ -17,7 +17,7 @@ from learners.base import (
     INPUT_DIM,
     STATE_DIM,
     Learner,
-    check_episodes,
+    check_fit_data,
     check_int,
     check_rollout_args,
 )
@@ -94,9 +94,7 @@ class TrainedLearner(Learner):
     ) -> Self:
         """Train on windows of ``train``; early-stop on ``validation``; resume from
         ``checkpoint_dir`` when it holds this run's checkpoint."""
-        check_episodes(train, "train", normalizer)
-        if validation:
-            check_episodes(validation, "validation", normalizer)
+        check_fit_data(train, validation, normalizer)
         self.normalizer_ = normalizer
         n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
         self._build(n, m)
