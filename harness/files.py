@@ -14,13 +14,32 @@ from typing import IO, Any
 import numpy as np
 
 
+def umask() -> int:
+    """The process umask, read from /proc where Linux offers it: ``os.umask`` can only read it
+    by setting it, and another thread creating a file in between would get the wrong mode."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_atomic(path: Path | str, write: Callable[[IO[bytes]], object]) -> Path:
     """Call ``write(handle)`` on a uniquely named temporary file beside ``path``, then rename it
-    over ``path``; on any failure the temporary file is removed and the error raised."""
+    over ``path``; on any failure the temporary file is removed and the error raised.
+
+    The file ends with the mode ``open()`` would give it (0o666 less the umask): ``mkstemp``
+    creates 0o600, which would hide shared datasets and results from everyone but the owner.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, 0o666 & ~umask())
         with os.fdopen(fd, "wb") as handle:
             write(handle)
         os.replace(tmp, path)
