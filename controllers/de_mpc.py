@@ -21,6 +21,7 @@ u_t = u_{t-1} + Δu_{t|t} is applied (eq. 21). Everything runs in the model's no
 from __future__ import annotations
 
 import logging
+import math
 import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -50,6 +51,14 @@ LINEARIZATIONS = ("plan", "frozen")
 REFERENCES = ("states", "path")
 # Path following: the speed in the error kinematics, to this band (m/s): 1 % at 80 km/h.
 SPEED_BAND_MPS = 0.25
+# The longest prediction horizon, Np·dt (s): 1000 steps at 10 ms, 17 times the paper's longest
+# (60 steps) and the span of the pipeline's prediction windows (task.prediction_window_s). Θ holds
+# C·Aᵏ·B for k <= Np, so a learned model's mode outside the unit circle (spectrum.unstable_modes;
+# bilinear EDMD's fastest on data=default doubles in 2.5 s, docs/bilinear.md) grows as
+# 2^(Np·dt / 2.5 s) in Θ and squared in the Hessian ΘᵀQΘ: 16-fold over 10 s, 2^400 over
+# Np = 100000 (1000 s), where the Hessian overflows float64 (2^1024) after the whole run's
+# training. Every tracking step also keeps and records its predicted horizon: (T, Np, 3) floats.
+MAX_HORIZON_S = 10.0
 # Where the car stands for the path QP: lateral error (m), heading error (rad), the banded speed
 # v̄ (m/s) and the curvature at the Np steps ahead (1/m).
 _Where = tuple[float, float, float, np.ndarray]
@@ -140,6 +149,7 @@ class DEMPCConfig:
         )
         _check_range("steer_wheel", self.steer_wheel_min_deg, self.steer_wheel_max_deg, "_deg")
         _check_range("pedal", self.pedal_min, self.pedal_max, "")
+        _check_horizon_span(int(self.Np), float(self.dt))
 
     def weights(self) -> tuple[np.ndarray, np.ndarray]:
         """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
@@ -550,6 +560,17 @@ def _check_horizons(Np: float, Nc: float) -> None:
             raise ValueError(f"controller.{key} must be a positive integer (got {value})")
     if Nc > Np:
         raise ValueError(f"controller.Nc ({Nc}) must be <= controller.Np ({Np})")
+
+
+def _check_horizon_span(Np: int, dt: float) -> None:
+    """Refuse a horizon longer than ``MAX_HORIZON_S``: its prediction matrices lose all
+    precision, then overflow, on a learned model's unstable modes (see ``MAX_HORIZON_S``)."""
+    if Np * dt > MAX_HORIZON_S * (1 + 1e-9):
+        raise ValueError(
+            f"controller.Np ({Np}) spans {Np * dt:g} s at controller.dt = {dt:g} s; at most "
+            f"{MAX_HORIZON_S:g} s ({math.floor(MAX_HORIZON_S / dt + 1e-9)} steps): over a longer "
+            "horizon a learned model's unstable modes overflow the QP's prediction matrices"
+        )
 
 
 def _check_qp_size(Np: int, Nc: int) -> None:

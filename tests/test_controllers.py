@@ -23,6 +23,7 @@ from controllers import (
     condensed_qp,
 )
 from controllers.condensed_qp import PATHS, QP_SOLVERS
+from controllers.de_mpc import MAX_HORIZON_S
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.data import Episode
 from harness.data.driver import DriverKnowledge
@@ -357,6 +358,8 @@ def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
         ({"active_set": "yes"}, "controller.active_set must be true or false"),
         ({"qp_solver": "osqp"}, "controller.qp_solver must be one of daqp, active_set"),
         ({"pedal_max": 0.5}, "must lie within the plant's range"),
+        ({"Np": 1001}, "controller.Np (1001) spans 10.01 s at controller.dt = 0.01 s; at most 10"),
+        ({"Np": 600, "dt": 0.02}, "controller.Np (600) spans 12 s at controller.dt = 0.02 s"),
     ],
 )
 def test_a_wrong_setting_names_its_key_in_one_line(settings: dict, message: str) -> None:
@@ -364,6 +367,19 @@ def test_a_wrong_setting_names_its_key_in_one_line(settings: dict, message: str)
     with pytest.raises(ValueError) as info:
         DEMPCConfig(**settings)
     assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_the_longest_horizon_allowed_stays_well_posed_on_a_fast_unstable_mode() -> None:
+    """MAX_HORIZON_S's reason: a mode doubling every 2.5 s (bilinear EDMD's fastest on
+    data=default, docs/bilinear.md) grows 16-fold over 10 s; the Hessian stays finite and SPD."""
+    model = linear_model()
+    model.A_[0, 0] = 2 ** (0.01 / 2.5)  # vx's mode: |λ| = 1.0028
+    steps = round(MAX_HORIZON_S / 0.01)
+    DEMPCConfig(Np=steps, Nc=7)  # the bound itself is allowed
+    qp = make_qp(model, Np=steps, Nc=7)
+    assert np.isfinite(qp.P).all() and np.isfinite(qp.theta).all()
+    np.linalg.cholesky(qp.P)
+    assert np.abs(qp.theta).max() < 1e3  # nowhere near float64's 1.8e308
 
 
 @pytest.mark.parametrize(

@@ -73,7 +73,11 @@ def build_as_the_app(*overrides: str) -> None:
         ),
         (
             ["task.references.double_lane_change.speed_mps=-1"],
-            "task.references.double_lane_change.speed_mps must be > 0 (got -1)",
+            "task.references.double_lane_change.speed_mps must be >= 1 m/s (got -1)",
+        ),
+        (  # 1.6 million steps: 11 minutes and 78 MB of recording before (issue 26)
+            ["task.references.double_lane_change.speed_mps=0.01"],
+            "task.references.double_lane_change.speed_mps must be >= 1 m/s (got 0.01)",
         ),
         (
             ["task.references.double_lane_change.standard=iso9999"],
@@ -122,6 +126,15 @@ def build_as_the_app(*overrides: str) -> None:
             ["controller.Np=100000", "controller.Nc=100000"],
             "controller.Np and controller.Nc: the condensed QP of Np = 100000, Nc = 100000",
         ),
+        (  # fits in memory, but its Hessian overflowed after training before (issue 26)
+            ["controller.Np=100000", "controller.Nc=7"],
+            "controller.Np (100000) spans 1000 s at controller.dt = 0.01 s; at most 10 s",
+        ),
+        (
+            ["experiment=paper", "task.extra_controllers.de_mpc_long.Np=2000"],
+            "task.extra_controllers.de_mpc_long.Np (2000) spans 20 s at "
+            "task.extra_controllers.de_mpc_long.dt = 0.01 s",
+        ),
     ],
 )
 def test_every_part_of_the_config_is_checked_before_the_first_episode(
@@ -156,6 +169,11 @@ def run_harness(tmp: Path, *overrides: str) -> tuple[subprocess.CompletedProcess
         (["controller.Np=3", "controller.Nc=7"], "controller.Np"),
         (["plant.tire.road_friction=abc"], "plant.tire.road_friction"),  # Hydra's own error
         (["plant.tire.vertical_stiffness_n_per_m=1e12"], "plant.tire.vertical_stiffness_n_per_m"),
+        (["controller.Np=100000", "controller.Nc=7"], "controller.Np"),
+        (
+            ["task.references.double_lane_change.speed_mps=0.01"],
+            "task.references.double_lane_change.speed_mps",
+        ),
     ],
 )
 def test_the_command_line_fails_in_one_line_with_no_data_and_no_training(

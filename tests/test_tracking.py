@@ -19,6 +19,7 @@ from harness.references import (
     from_episode,
     lane_offset_m,
 )
+from harness.references.iso3888 import MIN_SPEED_MPS
 from harness.tracking import TrackingTrajectory, predicted_path, track
 from tests.toy_models import ModelPlant, feasible_reference
 from tests.toy_models import toy_linear_model as linear_model
@@ -71,6 +72,13 @@ def test_an_unknown_standard_or_speed_is_refused() -> None:
         double_lane_change(20.0, "iso9999")
     with pytest.raises(ValueError, match="speed_mps"):
         double_lane_change(0.0)
+    with pytest.raises(ValueError, match=r"speed_mps must be >= 1 m/s \(got 0.5\)"):
+        double_lane_change(0.5)  # its run grows as 1 / speed: refused before it is built
+
+
+def test_the_slowest_lane_change_allowed_is_as_long_as_a_paper_scale_test_drive() -> None:
+    states = double_lane_change(MIN_SPEED_MPS)
+    assert 15_000 < len(states) <= 40_000  # conf/data/paper.yaml: drives of 10k-40k steps
 
 
 def test_a_reference_from_an_episode_is_its_recorded_states() -> None:
