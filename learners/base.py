@@ -24,7 +24,8 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, ClassVar, Self
+from types import MappingProxyType
+from typing import Any, ClassVar, NamedTuple, Self
 
 import numpy as np
 import torch
@@ -32,7 +33,15 @@ import torch
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.files import write_atomic
 
-__all__ = ["FORMAT", "KoopmanLearner", "Learner", "check_same_learner", "load"]
+__all__ = [
+    "FORMAT",
+    "Dim",
+    "KoopmanLearner",
+    "Learner",
+    "array_problem",
+    "check_same_learner",
+    "load",
+]
 
 FORMAT = "koopman-vehicle-harness/learner"
 FORMAT_VERSION = 1
@@ -41,6 +50,17 @@ FORMAT_VERSION = 1
 _MOVED = {"learners.elm_edmd.ELMEDMD": "learners.edmd.EDMD"}
 STATE_DIM = 3  # vx, vy, yaw_rate
 INPUT_DIM = 2  # steer_wheel_deg, pedal
+
+
+class Dim(NamedTuple):
+    """A size that follows from the hyperparameters, named in messages (``N = 33``)."""
+
+    name: str
+    size: int
+    means: str = ""
+
+
+Shape = tuple[int | Dim, ...]
 
 
 class Learner(ABC):
@@ -84,10 +104,28 @@ class Learner(ABC):
             (..., T + 1, 3) predicted states; row 0 is ``x0`` itself.
         """
 
-    def save(self, path: str | Path) -> Path:
-        """Write the fitted model to one file that :func:`load` reads back; returns the path."""
+    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> Path:
+        """Write the fitted model to one file that :func:`load` reads back; returns the path.
+
+        ``provenance`` says what the model was trained on (plain values: the caller's words,
+        e.g. plant and dataset); None keeps what the file it was loaded from said.
+
+        Raises:
+            ValueError: (one line) when a fitted array is NaN, infinite or mis-shaped: a
+                diverged fit is reported, never saved as a model.
+        """
         path = Path(path)
         _require_fitted(self)
+        state = self._state()
+        n, m = self.normalizer_.state_min.shape[0], self.normalizer_.input_min.shape[0]
+        problem = _normalizer_problem(self.normalizer_.to_dict(), n, m) or array_problem(
+            state, self._state_shapes(n, m)
+        )
+        if problem is not None:
+            raise ValueError(
+                f"{self.name}: the fitted model's {problem}: the fit diverged or failed, so it "
+                f"is not saved to {path}; check the training data and the learner's settings"
+            )
         payload = {
             "format": FORMAT,
             "version": FORMAT_VERSION,
@@ -96,7 +134,8 @@ class Learner(ABC):
             "state_dim": int(self.normalizer_.state_min.shape[0]),
             "input_dim": int(self.normalizer_.input_min.shape[0]),
             "normalizer": self.normalizer_.to_dict(),
-            "tensors": {k: torch.as_tensor(np.asarray(v)) for k, v in self._state().items()},
+            "tensors": {k: torch.as_tensor(np.asarray(v)) for k, v in state.items()},
+            "provenance": dict(self.provenance_ if provenance is None else provenance),
         }
         return write_atomic(path, lambda handle: torch.save(payload, handle))
 
@@ -141,10 +180,18 @@ class Learner(ABC):
 
     _hyperparameters: dict[str, Any]
     normalizer_: MinMaxNormalizer
+    # What the model was trained on, as its file said (plant, dataset; empty for a model fitted
+    # here, or a file from before it was recorded): the caller compares it with its own run.
+    provenance_: Mapping[str, Any] = MappingProxyType({})
 
     @abstractmethod
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         """The fitted arrays that, with the hyperparameters and normalizer, define the model."""
+
+    @abstractmethod
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        """The shape of every array of :meth:`_state`, from the hyperparameters alone (n states,
+        m inputs): what a model file is checked against before :meth:`_set_state` reads it."""
 
     @abstractmethod
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
@@ -200,9 +247,72 @@ def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT
     if not (isinstance(cls, type) and issubclass(cls, Learner)):
         raise ValueError(f"{path} names {payload['class']!r}, which is not a learner class")
     learner = cls.from_hyperparameters(payload["hyperparameters"])
-    learner.normalizer_ = MinMaxNormalizer.from_dict(payload["normalizer"])
-    learner._set_state(payload["tensors"])
+    normalizer, tensors = payload.get("normalizer"), payload.get("tensors")
+    if not (isinstance(normalizer, Mapping) and isinstance(tensors, Mapping)):
+        raise ValueError(f"{path} is not a learner file (no normalizer or tensors)")
+    problem = _normalizer_problem(normalizer, state_dim, input_dim) or array_problem(
+        tensors, learner._state_shapes(state_dim, input_dim)
+    )
+    if problem is not None:
+        raise ValueError(f"{path}: {problem}: retrain the model, or choose another model file")
+    learner.normalizer_ = MinMaxNormalizer.from_dict(normalizer)
+    learner._set_state(tensors)
+    provenance = payload.get("provenance")
+    learner.provenance_ = dict(provenance) if isinstance(provenance, Mapping) else {}
     return learner
+
+
+def array_problem(
+    arrays: Mapping[str, Any], shapes: Mapping[str, Shape], kind: str = "tensor"
+) -> str | None:
+    """What is wrong with a model's arrays, as one clause naming the array (``tensor 'A' has
+    NaN at (3, 4)``), or None: one missing or not in ``shapes``, not numeric, of another shape
+    than ``shapes`` gives, or not finite. A NaN or a wrong size does not fail where it is read:
+    it turns every prediction, figure and tracking run after it into garbage."""
+    for key in shapes:
+        if key not in arrays:
+            return f"{kind} '{key}' is missing"
+    for key, value in arrays.items():
+        if key not in shapes:
+            return f"{kind} '{key}' is not one of this learner's ({', '.join(shapes)})"
+        array = value.numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
+        if not (np.issubdtype(array.dtype, np.number) or array.dtype == np.bool_):
+            return f"{kind} '{key}' holds {array.dtype} values, not numbers"
+        expected = shapes[key]
+        if array.shape != tuple(int(d.size) if isinstance(d, Dim) else d for d in expected):
+            return f"{kind} '{key}' has shape {array.shape}, expected {_shape_text(expected)}"
+        bad = ~np.isfinite(array)
+        if bad.any():
+            index = tuple(int(i) for i in np.argwhere(bad)[0])
+            what = "NaN" if np.isnan(array[index]) else "inf"
+            return f"{kind} '{key}' has {what} at {index}"
+    return None
+
+
+def _shape_text(shape: Shape) -> str:
+    """``(N, N) with N = 33 (lifted states)``: the names and the sizes they stand for."""
+    names = [d.name if isinstance(d, Dim) else str(d) for d in shape]
+    text = f"({names[0]},)" if len(names) == 1 else f"({', '.join(names)})"
+    dims = list(dict.fromkeys(d for d in shape if isinstance(d, Dim)))
+    if dims:
+        text += " with " + ", ".join(
+            f"{d.name} = {d.size}" + (f" ({d.means})" if d.means else "") for d in dims
+        )
+    return text
+
+
+def _normalizer_problem(values: Mapping[str, Any], n: int, m: int) -> str | None:
+    """A normalizer of the wrong size, with NaN or inf (``state_max=inf``), or min above max."""
+    shapes: dict[str, Shape] = {"state_min": (n,), "state_max": (n,)}
+    shapes |= {"input_min": (m,), "input_max": (m,)}
+    problem = array_problem(values, shapes, kind="normalizer")
+    if problem is not None:
+        return problem
+    for low, high in (("state_min", "state_max"), ("input_min", "input_max")):
+        below = np.flatnonzero(np.asarray(values[high]) < np.asarray(values[low]))
+        if below.size:
+            return f"normalizer '{high}' is below '{low}' at ({int(below[0])},)"
+    return None
 
 
 # Training settings that say how long or how a model was trained, not which model it is: a

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from harness.data.episode import MinMaxNormalizer
-from learners.base import INPUT_DIM, STATE_DIM, check_choice, check_rollout_args
+from learners.base import INPUT_DIM, STATE_DIM, Shape, check_choice, check_rollout_args
 from learners.dictionaries import Dictionary
 from learners.edmd import EDMD
 
@@ -208,6 +208,11 @@ class BilinearEDMD(BilinearOperator, EDMD):
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {**super()._state(), "H": self.H_}
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        shapes = super()._state_shapes(n, m)
+        lifted = shapes["A"][0]
+        return {**shapes, "H": (m, lifted, lifted)}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.H_ = state["H"].numpy().astype(np.float64)

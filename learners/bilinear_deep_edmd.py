@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from harness.data.episode import Episode
-from learners.base import check, check_choice, check_nonnegative, check_positive
+from learners.base import Shape, check, check_choice, check_nonnegative, check_positive
 from learners.bilinear import (
     RIDGE_PRIORS,
     BilinearOperator,
@@ -244,6 +244,11 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {**super()._state(), "H": self.H_}
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        shapes = super()._state_shapes(n, m)
+        lifted = shapes["A"][0]
+        return {**shapes, "H": (m, lifted, lifted)}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         super()._set_state(state)

@@ -38,7 +38,9 @@ import torch
 
 from harness.data.episode import Episode
 from learners.base import (
+    Dim,
     KoopmanLearner,
+    Shape,
     check,
     check_choice,
     check_int,
@@ -501,6 +503,12 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {**super()._state(), "A": self.A_, "B": self.B_, "C": self.C_}
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        size = self.lifted_dim + (n if self.lifted_includes_state else 0)
+        lifted = Dim("N", size, "lifted states")
+        shapes = super()._state_shapes(n, m)
+        return {**shapes, "A": (lifted, lifted), "B": (lifted, m), "C": (n, lifted)}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         super()._set_state(state)

@@ -25,7 +25,7 @@ from typing import Any, Self
 
 import numpy as np
 
-from learners.base import check_choice, check_int, check_positive
+from learners.base import Dim, Shape, check_choice, check_int, check_positive
 
 __all__ = ["ACTIVATIONS", "Dictionary", "RandomFeatures", "ThinPlateRBF", "dictionary_from"]
 
@@ -89,6 +89,15 @@ class Dictionary(ABC):
     @abstractmethod
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
         """Restore what :meth:`state` returned."""
+
+    @abstractmethod
+    def state_shapes(self, width: int) -> dict[str, Shape]:
+        """The shape of every array of :meth:`state` on points of ``width`` coordinates."""
+
+    def _count(self) -> Dim:
+        """K, named by its config key (for a model file's shape messages)."""
+        key, size = self.size
+        return Dim("K", size, f"learner.{key}")
 
 
 def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
@@ -176,6 +185,9 @@ class ThinPlateRBF(Dictionary):
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
         self.centers_ = np.asarray(state["centers"], dtype=np.float64)
 
+    def state_shapes(self, width: int) -> dict[str, Shape]:
+        return {"centers": (self._count(), width)}
+
 
 @dataclass(eq=False)
 class RandomFeatures(Dictionary):
@@ -224,3 +236,6 @@ class RandomFeatures(Dictionary):
     def set_state(self, state: Mapping[str, np.ndarray]) -> None:
         self.weights_ = np.asarray(state["weights"], dtype=np.float64)
         self.biases_ = np.asarray(state["biases"], dtype=np.float64)
+
+    def state_shapes(self, width: int) -> dict[str, Shape]:
+        return {"weights": (self._count(), width), "biases": (self._count(),)}

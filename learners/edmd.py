@@ -26,7 +26,9 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
     STATE_DIM,
+    Dim,
     KoopmanLearner,
+    Shape,
     check_fit_data,
     check_int,
     check_nonnegative,
@@ -191,6 +193,15 @@ class EDMD(KoopmanLearner):
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {"A": self.A_, "B": self.B_, "C": self.C_, **self.dictionary.state()}
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        lifted = Dim("N", self.lifted_dim(n), "lifted states")
+        return {
+            "A": (lifted, lifted),
+            "B": (lifted, m),
+            "C": (n, lifted),
+            **self.dictionary.state_shapes(n),
+        }
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.A_, self.B_, self.C_ = (state[k].numpy().astype(np.float64) for k in "ABC")

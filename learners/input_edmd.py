@@ -44,7 +44,9 @@ from harness.data.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
     STATE_DIM,
+    Dim,
     Learner,
+    Shape,
     check_fit_data,
     check_int,
     check_nonnegative,
@@ -266,6 +268,10 @@ class InputEDMD(Learner):
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {"theta": self.theta_, "ridge": np.array([self.ridge_]), **self.dictionary.state()}
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        regressors = Dim("R", self.regressor_count(n, m), "regressors")
+        return {"theta": (regressors, n), "ridge": (1,), **self.dictionary.state_shapes(n + m)}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.theta_ = state["theta"].numpy().astype(np.float64)

@@ -44,7 +44,7 @@ import torch
 from scipy.optimize import minimize_scalar
 
 from harness.data.episode import Episode, MinMaxNormalizer, pedal_scale
-from learners.base import Learner, check_fit_data, check_positive, check_rollout_args
+from learners.base import Learner, Shape, check_fit_data, check_positive, check_rollout_args
 
 __all__ = ["NAMES", "SingleTrack"]
 
@@ -311,6 +311,9 @@ class SingleTrack(Learner):
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {"coefficients": self.coefficients_, "dt": np.array([self.dt_])}
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        return {"coefficients": (len(NAMES),), "dt": (1,)}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.coefficients_ = state["coefficients"].numpy().astype(np.float64)

@@ -16,7 +16,9 @@ from learners import training as loop
 from learners.base import (
     INPUT_DIM,
     STATE_DIM,
+    Dim,
     Learner,
+    Shape,
     check_fit_data,
     check_int,
     check_rollout_args,
@@ -200,9 +202,12 @@ class TrainedLearner(Learner):
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {"params": self.params_.data.clone()}
 
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        """One flat buffer of every layer's weights and biases (``learners.nets``)."""
+        count = sum(s.fan_out * (s.fan_in + int(s.bias)) for s in self._specs(n, m))
+        return {"params": (Dim("P", count, "the network's parameters"),)}
+
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         norm = self.normalizer_
         self._build(norm.state_min.shape[0], norm.input_min.shape[0])
-        if state["params"].shape != self.params_.data.shape:
-            raise ValueError(f"{self.name} file does not match its hyperparameters")
         self.params_.data.copy_(state["params"])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -26,7 +27,11 @@ from learners import (
     ThinPlateRBF,
 )
 from learners.base import FORMAT_VERSION
+from learners.bilinear import BilinearEDMD
+from learners.bilinear_deep_edmd import BilinearDeepEDMD
 from learners.input_edmd import InputEDMD
+from learners.single_track import SingleTrack
+from learners.trained import TrainedLearner
 from tests.toydata import drive_episodes
 
 NAMES = ("edmd", "elm_edmd", "dnn", "deep_edmd", "input_edmd")
@@ -306,3 +311,198 @@ def test_an_unknown_key_in_a_plain_block_is_refused_naming_it() -> None:
     assert "\n" not in str(info.value)
     with pytest.raises(ValueError, match=r"learner\.training\.lr must be > 0 \(got -1\)"):
         DNN(training={"lr": -1})
+
+
+# -- a model file is checked on load, and a non-finite model is never saved ----------------------
+
+TRAINING = {"max_steps": 5, "batch_size": 8, "eval_every_steps": 5, "progress": False}
+NET = {"lifted_dim": 4, "encoder_hidden": [8], "decoder_hidden": [8], "horizon": 4}
+
+# Every kind of learner, as small as it gets (a fit in well under a second): each stores other
+# tensors (A, B, C, H, dictionary arrays, theta, coefficients, a flat network buffer).
+KINDS = {
+    "edmd": lambda: EDMD(ThinPlateRBF(num_centers=5)),
+    "elm_edmd": lambda: EDMD(RandomFeatures(num_features=5), ridge=1e-8),
+    "bilinear_edmd": lambda: BilinearEDMD(ThinPlateRBF(num_centers=5)),
+    "input_edmd": lambda: InputEDMD(ThinPlateRBF(num_centers=10, center_draw="samples"), 1e-6),
+    "single_track": SingleTrack,
+    "dnn": lambda: DNN(hidden=[8], horizon=4, training=TRAINING),
+    "deep_edmd": lambda: DeepEDMD(**NET, training=TRAINING),
+    "bilinear_deep_edmd": lambda: BilinearDeepEDMD(**NET, training=TRAINING),
+}
+
+
+@pytest.fixture(scope="module")
+def model_files(data: dict, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    directory = tmp_path_factory.mktemp("model_files")
+    return {
+        kind: make()
+        .fit(data["train"][:2], data["validation"], data["normalizer"])
+        .save(directory / f"model_{kind}.pt")
+        for kind, make in KINDS.items()
+    }
+
+
+def _tensors(path: Path) -> dict:
+    return torch.load(path, weights_only=True)["tensors"]
+
+
+def _corrupt(path: Path, out: Path, change) -> Path:
+    """A copy of the model file ``path`` with ``change`` applied to its payload."""
+    payload = torch.load(path, weights_only=True)
+    change(payload)
+    torch.save(payload, out)
+    return out
+
+
+def _load_error(path: Path) -> str:
+    with pytest.raises(ValueError) as info:
+        learners.load(path)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(f"{path}: ")
+    assert message.endswith("retrain the model, or choose another model file")
+    return message
+
+
+def _expected_shape(message: str) -> tuple[int, ...]:
+    """The shape a message says was expected, its names (``N = 9``) resolved to sizes."""
+    found = re.search(r"expected \(([^)]*)\)(?: with (.*))?: retrain", message)
+    assert found, message
+    sizes = dict(re.findall(r"(\w+) = (\d+)", found.group(2) or ""))
+    dims = [d.strip() for d in found.group(1).split(",") if d.strip()]
+    return tuple(int(sizes.get(d, d)) for d in dims)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_nan_or_inf_in_any_tensor_of_a_model_file_is_refused_naming_file_and_tensor(
+    kind: str, model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    keys = list(_tensors(model_files[kind]))
+    assert keys  # every learner stores something to check
+    for key in keys:
+        for value, word in ((float("nan"), "NaN"), (float("-inf"), "inf")):
+
+            def poison(payload: dict, key: str = key, value: float = value) -> None:
+                tensor = payload["tensors"][key].clone()
+                tensor.view(-1)[-1] = value  # the last entry: a scan that stops early misses it
+                payload["tensors"][key] = tensor
+
+            bad = _corrupt(model_files[kind], tmp_path / f"{key}_{word}.pt", poison)
+            index = np.unravel_index(_tensors(bad)[key].numel() - 1, _tensors(bad)[key].shape)
+            expected = f"tensor '{key}' has {word} at {tuple(int(i) for i in index)}"
+            assert expected in _load_error(bad)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_tensor_of_another_shape_is_refused_naming_the_expected_one(
+    kind: str, model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """One row too many in each tensor in turn: the message names the size the learner's own
+    hyperparameters give (``N = 9 (lifted states)``), not only the numbers."""
+    for key, tensor in _tensors(model_files[kind]).items():
+        wrong = (tensor.shape[0] + 1, *tensor.shape[1:])
+
+        def reshape(payload: dict, key: str = key, wrong: tuple = wrong) -> None:
+            payload["tensors"][key] = torch.zeros(wrong, dtype=payload["tensors"][key].dtype)
+
+        message = _load_error(_corrupt(model_files[kind], tmp_path / f"{key}.pt", reshape))
+        assert f"tensor '{key}' has shape {wrong}, expected (" in message
+        assert _expected_shape(message) == tuple(tensor.shape)
+
+
+def test_the_lifted_size_is_named_in_the_shape_message(
+    model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """EDMD with 5 centres lifts to N = 3 + 1 + 5 = 9: a 50 x 50 A is refused as such."""
+
+    def big(payload: dict) -> None:
+        payload["tensors"]["A"] = torch.zeros(50, 50, dtype=torch.float64)
+
+    message = _load_error(_corrupt(model_files["edmd"], tmp_path / "a50.pt", big))
+    assert "tensor 'A' has shape (50, 50), expected (N, N) with N = 9 (lifted states)" in message
+
+    def network(payload: dict) -> None:
+        payload["tensors"]["params"] = payload["tensors"]["params"][:-1]
+
+    message = _load_error(_corrupt(model_files["dnn"], tmp_path / "params.pt", network))
+    assert "tensor 'params' has shape" in message and "(P,) with P = " in message
+
+
+@pytest.mark.parametrize("kind", ["bilinear_edmd", "bilinear_deep_edmd", "elm_edmd"])
+def test_a_missing_or_foreign_tensor_is_refused(
+    kind: str, model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    key = "biases" if kind == "elm_edmd" else "H"
+
+    def drop(payload: dict) -> None:
+        del payload["tensors"][key]
+
+    assert f"tensor '{key}' is missing" in _load_error(
+        _corrupt(model_files[kind], tmp_path / "missing.pt", drop)
+    )
+
+    def add(payload: dict) -> None:
+        payload["tensors"]["extra"] = torch.zeros(3)
+
+    assert "tensor 'extra' is not one of this learner's" in _load_error(
+        _corrupt(model_files[kind], tmp_path / "extra.pt", add)
+    )
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "expected"),
+    [
+        ("state_max", [float("inf"), 1.0, 1.0], "normalizer 'state_max' has inf at (0,)"),
+        ("input_min", [0.0, float("nan")], "normalizer 'input_min' has NaN at (1,)"),
+        ("state_min", [0.0] * 4, "normalizer 'state_min' has shape (4,), expected (3,)"),
+        ("state_max", [-1e9, -1e9, -1e9], "normalizer 'state_max' is below 'state_min' at (0,)"),
+    ],
+)
+def test_a_broken_normalizer_is_refused_naming_the_array(
+    key: str, value: list, expected: str, model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """``state_max=inf`` would map every state to 0 and track garbage without a word."""
+
+    def change(payload: dict) -> None:
+        payload["normalizer"][key] = value
+
+    for kind in ("edmd", "dnn"):
+        assert expected in _load_error(_corrupt(model_files[kind], tmp_path / "n.pt", change))
+
+
+@pytest.mark.parametrize("kind", ["edmd", "input_edmd", "single_track", "dnn", "deep_edmd"])
+def test_a_model_with_non_finite_parameters_is_never_saved(
+    kind: str, model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """A fit that diverged is reported (one line naming the tensor), not saved as a model."""
+    learner = learners.load(model_files[kind])
+    if isinstance(learner, TrainedLearner):
+        learner.params_.data[3] = float("nan")
+        clause = "tensor 'params' has NaN at (3,)"
+    else:
+        array = {"input_edmd": "theta_", "single_track": "coefficients_"}.get(kind, "A_")
+        getattr(learner, array)[0, ...] = float("inf")
+        clause = f"tensor '{array.rstrip('_')}' has inf at (0"
+    path = tmp_path / "diverged.pt"
+    with pytest.raises(ValueError, match=r"the fit diverged or failed, so it is not saved") as info:
+        learner.save(path)
+    assert clause in str(info.value) and "\n" not in str(info.value)
+    assert not path.exists() and not list(tmp_path.iterdir())
+
+
+def test_a_model_file_records_what_it_was_trained_on_and_old_files_still_load(
+    model_files: dict[str, Path], tmp_path: Path
+) -> None:
+    """``provenance`` is saved as given, kept when a loaded model is saved again, and absent
+    (empty) in files written before it existed."""
+    learner = learners.load(model_files["edmd"])
+    assert learner.provenance_ == {}
+    record = {"plant": "sedan_wet", "plant_fingerprint": "0123", "dataset": "abcd"}
+    again = learners.load(learner.save(tmp_path / "recorded.pt", record))
+    assert again.provenance_ == record
+    assert learners.load(again.save(tmp_path / "resaved.pt")).provenance_ == record
+
+    def old(payload: dict) -> None:
+        del payload["provenance"]
+
+    assert learners.load(_corrupt(model_files["edmd"], tmp_path / "old.pt", old)).provenance_ == {}

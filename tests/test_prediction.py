@@ -50,6 +50,9 @@ class Hold(Learner):
     def _state(self) -> dict:
         return {}
 
+    def _state_shapes(self, n: int, m: int) -> dict:
+        return {}
+
     def _set_state(self, state) -> None:
         pass
 
