@@ -159,6 +159,7 @@ def test_the_hot_start_finds_the_same_optimum_from_any_previous_active_set() -> 
         hot, cold = qp.solve(z, v_prev, y_ref), qp.solve_piqp(z, v_prev, y_ref)
         bounds_hold(qp, v_prev, hot.dv, hot.slack)
         assert_optimal(qp, z, v_prev, y_ref, hot)
+        assert solution_kkt(qp, z, v_prev, y_ref, cold).holds(PIQP_KKT_TOL)
         assert qp.cost(z, v_prev, y_ref, hot.dv, hot.slack) == pytest.approx(
             qp.cost(z, v_prev, y_ref, cold.dv, cold.slack), rel=1e-5
         )

@@ -111,6 +111,7 @@ def test_a_constant_time_varying_model_solves_the_time_invariant_qp(
     )
     expected, got = lti.solve(z, v_prev, y_ref), tv.solve(z, v_prev, y_ref)
     assert got.path == expected.path
+    assert_optimal(lti, z, v_prev, y_ref, expected)
     assert_optimal(lti, z, v_prev, y_ref, got)  # the time-invariant QP's optimum, by its KKT
     # The optimum is unique (P > 0) and both answers are exact: they agree to rounding.
     np.testing.assert_allclose(got.dv, expected.dv, atol=1e-8)
