@@ -8,15 +8,24 @@ recordings, so two ``.rrd`` files can be opened side by side and compared.
 Entity layout of a rollout called ``name`` (all series on the ``sim_time`` duration
 timeline, in seconds)::
 
-    {name}/state/<state_name>     scalar per sample (SI units)
-    {name}/input/<input_name>     scalar per sample (deg, pedal fraction / -MPa)
-    {name}/extra/<key>            scalar(s) per sample
-    {name}/car                    static Boxes3D + Arrows3D, moved by a Transform3D column
-    {name}/path                   static LineStrips3D of the whole trajectory
+    {name}/state/<state_name>             scalar per sample (SI units): the actual state
+    {name}/state/<state_name>/reference   its reference, when the rollout tracks one
+    {name}/state/<state_name>/<overlay>   a series drawn on the state's plot (a prediction)
+    {name}/error/<state_name>             actual - reference, when the rollout tracks one
+    {name}/input/<input_name>             scalar per sample (deg, pedal fraction / -MPa)
+    {name}/extra/<key>                    scalar(s) per sample
+    {name}/car                            moved by a Transform3D column (the pose)
+    {name}/car/body                       static Boxes3D: body and cabin
+    {name}/car/wheel_<fl|fr|rl|rr>        static Cylinders3D; the front pair steers
+    {name}/path                           static LineStrips3D of the whole trajectory
+
+Every plotted line has a name (``SeriesLines``): a state's plot reads ``reference``,
+``actual`` and the overlays' keys; the error plot ``<state> error``.
 
 :class:`Recorder` is the null recorder (selected with ``recorder=none``);
 :class:`RerunRecorder` writes a ``.rrd`` file. Both are built the same way from Hydra
-(``_partial_: true``) and then called with ``path=...``.
+(``_partial_: true``) and then called with ``path=...``; ``conf/recorder/rerun.yaml``
+gives the plant's steering ratio, so the drawn front wheels turn by the road-wheel angle.
 """
 
 from __future__ import annotations
@@ -33,11 +42,34 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-__all__ = ["CAR_HEIGHT_M", "CAR_LENGTH_M", "CAR_WIDTH_M", "Recorder", "RerunRecorder"]
+__all__ = [
+    "CAR_HEIGHT_M",
+    "CAR_LENGTH_M",
+    "CAR_WIDTH_M",
+    "FRONT_AXLE_X_M",
+    "REAR_AXLE_X_M",
+    "WHEEL_RADIUS_M",
+    "Recorder",
+    "RerunRecorder",
+]
 
+# The drawn car: the body the lane change judges against the cones (harness/references/course.py,
+# centred on the pose), a cabin on it, and wheels where models/mjcf/sedan.xml puts them.
 CAR_LENGTH_M = 4.6
 CAR_WIDTH_M = 1.8
 CAR_HEIGHT_M = 1.45
+WHEEL_RADIUS_M = 0.31  # the MJCF's tyre
+FRONT_AXLE_X_M = 1.15  # ahead of the pose (the MJCF's corner_fl)
+REAR_AXLE_X_M = -1.55  # (corner_rl)
+_BODY_Z_M = (0.30, 0.95)  # bottom and top of the lower body
+# The cabin: centre and half sizes, on the body up to the car's height (the MJCF's, lowered).
+_CABIN = (
+    (-0.2, 0.0, (_BODY_Z_M[1] + CAR_HEIGHT_M) / 2),
+    (1.2, 0.8, (CAR_HEIGHT_M - _BODY_Z_M[1]) / 2),
+)
+_WHEEL_WIDTH_M = 0.2
+# Wheel centres a little outboard of the MJCF's 0.775 m so that they show beside the body.
+_WHEEL_Y_M = CAR_WIDTH_M / 2 - 0.05
 
 SIM_TIMELINE = "sim_time"
 _CHASE_HALF_EXTENT_M = 8.0
@@ -64,6 +96,10 @@ _UNITS = {
 _STATE_OFFSET = 0
 _INPUT_OFFSET = 4
 _EXTRA_OFFSET = 3
+_OVERLAY_OFFSET = 3
+_REFERENCE = "reference"
+_REFERENCE_COLOR = (235, 235, 235)  # light on the viewer's dark plots, under the colored actual
+_STEER = "steer_wheel_deg"  # the input that turns the drawn front wheels
 
 
 def _color(i: int) -> tuple[int, int, int]:
@@ -130,6 +166,42 @@ def _time_column(timeline: str, t: np.ndarray) -> rr.TimeColumn:
     return rr.TimeColumn(timeline, duration=ns.astype("timedelta64[ns]"))
 
 
+def _fitted_range(values: np.ndarray, symmetric: bool = False) -> tuple[float, float] | None:
+    """Plot range of the values actually logged, 10 % margin; symmetric about 0 when asked.
+
+    Given to the plot so that its scale is the data's (None: no finite value, let the viewer fit).
+    """
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    if symmetric:
+        lo, hi = -max(abs(lo), abs(hi)), max(abs(lo), abs(hi))
+    margin = 0.1 * (hi - lo) if hi > lo else max(abs(hi), 1.0) * 0.1
+    return lo - margin, hi + margin
+
+
+def _input_plot(name: str, values: np.ndarray) -> tuple[str, tuple[float, float] | None]:
+    """Title and y range of an input's plot: the range the input was used over.
+
+    The steering is centred on straight ahead and its peak is in the title: on a plot a few
+    hundred pixels high the viewer labels only the zero tick of a +-70 deg range.
+    """
+    if name != _STEER:
+        return _title(name), _fitted_range(values)
+    finite = values[np.isfinite(values)]
+    peak = f", peak {np.max(np.abs(finite)):.0f}" if finite.size else ""
+    return _title(name) + peak, _fitted_range(values, symmetric=True)
+
+
+def _yaw_quaternions(yaw: np.ndarray) -> np.ndarray:
+    """(N, 4) xyzw quaternions of rotations by ``yaw`` [rad] about the vertical (Z) axis."""
+    quat = np.zeros((len(yaw), 4))
+    quat[:, 2] = np.sin(yaw / 2.0)
+    quat[:, 3] = np.cos(yaw / 2.0)
+    return quat
+
+
 def _on_ground(xy: np.ndarray, height: float = 0.02) -> np.ndarray:
     """(K, 2) X, Y -> (K, 3) at ``height`` m above the ground grid (no z-fighting)."""
     return np.column_stack([xy, np.full(len(xy), height)])
@@ -165,6 +237,10 @@ class _RolloutInfo:
     inputs: list[str]
     extras: list[str]
     has_pose: bool
+    # What each state's plot draws besides the state (reference, overlays), as entity paths.
+    on_state_plot: dict[str, list[str]] = field(default_factory=dict)
+    has_reference: bool = False
+    input_plots: dict[str, tuple[str, tuple[float, float] | None]] = field(default_factory=dict)
     priority: int = 0
     eye_position: tuple[float, float, float] | None = None
     eye_target: tuple[float, float, float] | None = None
@@ -191,9 +267,10 @@ class Recorder:
         self,
         path: str | os.PathLike[str] | None = None,
         application_id: str = "koopman_vehicle",
+        steering_ratio: float | None = None,
     ) -> None:
         """Ignore all arguments (kept for call compatibility with RerunRecorder)."""
-        del path, application_id
+        del path, application_id, steering_ratio
 
     def rollout(
         self,
@@ -206,6 +283,8 @@ class Recorder:
         input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
         extra: Mapping[str, np.ndarray] | None = None,
         priority: int = 0,
+        reference: np.ndarray | None = None,
+        overlays: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """Log one rollout of N samples under entity path ``name``.
 
@@ -221,6 +300,10 @@ class Recorder:
             extra: Further named (N,) or (N, k) series, logged under ``{name}/extra/<key>``.
             priority: Tabs go in descending priority, then in logged order: a run's result
                 (the closed-loop tracking, the lane change first) is what the recording opens on.
+            reference: (N, len(state_names)) states the rollout tracks: drawn on each state's
+                plot (``reference`` beside ``actual``), and actual - reference on one error plot.
+            overlays: Further (N, len(state_names)) series drawn on each state's plot under
+                their key (a model's prediction); NaN where there is none.
         """
 
     def scene(
@@ -288,14 +371,21 @@ class RerunRecorder(Recorder):
         self,
         path: str | os.PathLike[str],
         application_id: str = "koopman_vehicle",
+        steering_ratio: float | None = None,
     ) -> None:
         """Open the stream and start writing to the temporary file.
 
         Args:
             path: Final ``.rrd`` path; parent directories are created.
             application_id: Rerun application id (the viewer groups recordings by it).
+            steering_ratio: Steering-wheel angle per road-wheel angle of the plant (its
+                ``plant.steering.steering_ratio``): the drawn front wheels turn by
+                ``steer_wheel_deg / steering_ratio``. None draws them straight ahead.
         """
         super().__init__()
+        if steering_ratio is not None and not (np.isfinite(steering_ratio) and steering_ratio > 0):
+            raise ValueError(f"steering_ratio must be a positive number (got {steering_ratio!r})")
+        self.steering_ratio = steering_ratio
         self.path = Path(path)
         self.tmp_path = self.path.with_name(self.path.name + ".tmp")
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -326,6 +416,7 @@ class RerunRecorder(Recorder):
         values: np.ndarray,
         names: Sequence[str],
         colors: Sequence[tuple[int, int, int]],
+        width: float = 1.5,
     ) -> None:
         """Bulk-send a (N, k) scalar block plus static line styling for the plot legend."""
         rec = self._check_open()
@@ -335,7 +426,7 @@ class RerunRecorder(Recorder):
         )
         rec.log(
             entity,
-            rr.SeriesLines(names=list(names), colors=list(colors)),
+            rr.SeriesLines(names=list(names), colors=list(colors), widths=[width] * len(names)),
             static=True,
             strict=True,
         )
@@ -351,6 +442,8 @@ class RerunRecorder(Recorder):
         input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
         extra: Mapping[str, np.ndarray] | None = None,
         priority: int = 0,
+        reference: np.ndarray | None = None,
+        overlays: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """Log one rollout; see :meth:`Recorder.rollout`. Raises ValueError on bad shapes."""
         self._check_open()
@@ -371,12 +464,40 @@ class RerunRecorder(Recorder):
         u = _as_matrix("inputs", inputs, n, len(input_names))
         pose = None if poses is None else _as_matrix("poses", poses, n, 3)
         extras = {str(k): _as_matrix(f"extra[{k!r}]", v, n, None) for k, v in (extra or {}).items()}
+        ns = len(state_names)
+        ref = None if reference is None else _as_matrix("reference", reference, n, ns)
+        over = {
+            str(k): _as_matrix(f"overlays[{k!r}]", v, n, ns) for k, v in (overlays or {}).items()
+        }
+        if _REFERENCE in over:
+            raise ValueError(f"overlays may not be called {_REFERENCE!r}: pass it as reference=")
 
         index = _time_column(SIM_TIMELINE, t)
+        # Beside a reference or an overlay the state is the "actual" line; alone, its own name.
+        actual = "actual" if ref is not None or over else None
+        on_plot: dict[str, list[str]] = {}
         for i, s in enumerate(state_names):
-            self._send_scalars(
-                _child(root, "state", s), index, x[:, i : i + 1], [s], [_color(_STATE_OFFSET + i)]
-            )
+            entity = _child(root, "state", s)
+            color = _color(_STATE_OFFSET + i)
+            self._send_scalars(entity, index, x[:, i : i + 1], [actual or s], [color], width=2.0)
+            on_plot[s] = []
+            if ref is not None:
+                on_plot[s].append(_child(entity, _REFERENCE))
+                self._send_scalars(
+                    on_plot[s][-1], index, ref[:, i : i + 1], [_REFERENCE], [_REFERENCE_COLOR]
+                )
+                self._send_scalars(
+                    _child(root, "error", s),
+                    index,
+                    x[:, i : i + 1] - ref[:, i : i + 1],
+                    [f"{s} error"],
+                    [color],
+                )
+            for j, (key, v) in enumerate(over.items()):
+                on_plot[s].append(_child(entity, key))
+                self._send_scalars(
+                    on_plot[s][-1], index, v[:, i : i + 1], [key], [_color(_OVERLAY_OFFSET + j)]
+                )
         for i, s in enumerate(input_names):
             self._send_scalars(
                 _child(root, "input", s), index, u[:, i : i + 1], [s], [_color(_INPUT_OFFSET + i)]
@@ -387,7 +508,8 @@ class RerunRecorder(Recorder):
             colors = [_color(_EXTRA_OFFSET + j + c) for c in range(k)]
             self._send_scalars(_child(root, "extra", key), index, v, names, colors)
         if pose is not None:
-            self._log_car(root, index, pose)
+            steer = u[:, input_names.index(_STEER)] if _STEER in input_names else None
+            self._log_car(root, index, pose, steer)
 
         self._rollouts.append(
             _RolloutInfo(
@@ -397,40 +519,75 @@ class RerunRecorder(Recorder):
                 inputs=input_names,
                 extras=list(extras),
                 has_pose=pose is not None,
+                on_state_plot=on_plot,
+                has_reference=ref is not None,
+                input_plots={s: _input_plot(s, u[:, i]) for i, s in enumerate(input_names)},
                 priority=priority,
                 **({} if pose is None else _chase_eye(pose)),
             )
         )
 
-    def _log_car(self, root: str, index: rr.TimeColumn, pose: np.ndarray) -> None:
-        """Static car box + heading arrow moved by a Transform3D column; static full path."""
+    def _log_car(
+        self, root: str, index: rr.TimeColumn, pose: np.ndarray, steer_deg: np.ndarray | None
+    ) -> None:
+        """A car (body, cabin, four wheels) moved by a Transform3D column; static full path.
+
+        The front wheels turn about their vertical axis by the road-wheel angle,
+        ``steer_deg / steering_ratio`` (the mean of the two: Ackermann is not drawn), at every
+        sample of the simulation time.
+        """
         rec = self._check_open()
         # Z up (X forward, Y left) on the 3D view origin, so the ground grid is the XY plane.
         rec.log(root, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, strict=True)
         car = _child(root, "car")
+        bottom, top = _BODY_Z_M
+        cabin_center, cabin_half = _CABIN
         rec.log(
-            car,
+            _child(car, "body"),
             rr.Boxes3D(
-                half_sizes=[[CAR_LENGTH_M / 2, CAR_WIDTH_M / 2, CAR_HEIGHT_M / 2]],
-                centers=[[0.0, 0.0, CAR_HEIGHT_M / 2]],
-                colors=[(30, 144, 255)],
+                half_sizes=[[CAR_LENGTH_M / 2, CAR_WIDTH_M / 2, (top - bottom) / 2], cabin_half],
+                centers=[[0.0, 0.0, (top + bottom) / 2], cabin_center],
+                colors=[(30, 144, 255), (20, 60, 110)],
                 fill_mode="solid",
             ),
             static=True,
             strict=True,
         )
-        # Arrow from the car center to the front bumper: the box alone hides the heading.
-        rec.log(
-            car,
-            rr.Arrows3D(
-                origins=[[0.0, 0.0, CAR_HEIGHT_M + 0.05]],
-                vectors=[[CAR_LENGTH_M / 2 + 1.0, 0.0, 0.0]],
-                colors=[(255, 200, 0)],
-                radii=0.12,
-            ),
-            static=True,
-            strict=True,
+        # A cylinder's axis is its local Z: a quarter turn about X lays it along the axle (Y).
+        axle = rr.Quaternion(xyzw=[np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)])
+        n = pose.shape[0]
+        road_wheel = (
+            np.zeros(n)
+            if steer_deg is None or self.steering_ratio is None
+            else np.nan_to_num(np.deg2rad(steer_deg) / self.steering_ratio)
         )
+        front = {"fl": FRONT_AXLE_X_M, "fr": FRONT_AXLE_X_M}
+        for corner, x in (front | {"rl": REAR_AXLE_X_M, "rr": REAR_AXLE_X_M}).items():
+            wheel = _child(car, f"wheel_{corner}")
+            rec.log(
+                wheel,
+                rr.Cylinders3D(
+                    lengths=[_WHEEL_WIDTH_M],
+                    radii=[WHEEL_RADIUS_M],
+                    quaternions=[axle],
+                    colors=[(75, 75, 75)],  # tyres, light enough to show on the dark ground
+                    fill_mode="solid",
+                ),
+                static=True,
+                strict=True,
+            )
+            center = [x, _WHEEL_Y_M if corner.endswith("l") else -_WHEEL_Y_M, WHEEL_RADIUS_M]
+            if corner in front:
+                rec.send_columns(
+                    wheel,
+                    indexes=[index],
+                    columns=rr.Transform3D.columns(
+                        translation=np.tile(center, (n, 1)), quaternion=_yaw_quaternions(road_wheel)
+                    ),
+                    strict=True,
+                )
+            else:
+                rec.log(wheel, rr.Transform3D(translation=center), static=True, strict=True)
         # Invisible points around the car: the 3D view, when it starts tracking an entity,
         # zooms to 1.5x that entity's bounding sphere. Tracking this anchor (instead of the
         # 4.6 m box) gives a chase camera ~17 m away that shows the car and the road around it.
@@ -445,16 +602,14 @@ class RerunRecorder(Recorder):
             static=True,
             strict=True,
         )
-        yaw = pose[:, 2]
-        quat = np.zeros((pose.shape[0], 4))
-        quat[:, 2] = np.sin(yaw / 2.0)
-        quat[:, 3] = np.cos(yaw / 2.0)
-        translation = np.zeros((pose.shape[0], 3))
+        translation = np.zeros((n, 3))
         translation[:, :2] = pose[:, :2]
         rec.send_columns(
             car,
             indexes=[index],
-            columns=rr.Transform3D.columns(translation=translation, quaternion=quat),
+            columns=rr.Transform3D.columns(
+                translation=translation, quaternion=_yaw_quaternions(pose[:, 2])
+            ),
             strict=True,
         )
         path = translation.copy()
@@ -552,22 +707,49 @@ class RerunRecorder(Recorder):
     def blueprint(self) -> rrb.Blueprint | None:
         """Default viewer layout for what has been logged so far (None if nothing was).
 
-        One tab per rollout: 3D car + path on the left, one plot per state in the middle,
-        one plot per input (and per extra) on the right. Series get one tab with one plot
-        per ``series()`` path. Time axes of all plots are linked so zooming is shared.
+        One tab per rollout: 3D car + path on the left, one plot per state in the middle
+        (with its reference and overlays), one plot per input, the tracking error and one per
+        extra on the right. Series get one tab with one plot per ``series()`` path. Time axes
+        of all plots are linked so zooming is shared.
         """
         tabs: list[rrb.Container | rrb.View] = []
         link = rrb.TimeAxis(link="LinkToGlobal")
+        legend = rrb.PlotLegend(corner="LeftTop")
         for r in sorted(self._rollouts, key=lambda r: -r.priority):  # stable: logged order
+            # Each state's plot lists its lines by path: the reference is drawn where it is.
             state_views = [
-                rrb.TimeSeriesView(origin=_child(r.root, "state", s), name=_title(s), axis_x=link)
+                rrb.TimeSeriesView(
+                    origin=_child(r.root, "state", s),
+                    contents=[_child(r.root, "state", s), *r.on_state_plot.get(s, [])],
+                    name=_title(s),
+                    axis_x=link,
+                    plot_legend=legend,
+                )
                 for s in r.states
             ]
             other_views = [
-                rrb.TimeSeriesView(origin=_child(r.root, "input", s), name=_title(s), axis_x=link)
-                for s in r.inputs
-            ] + [
-                rrb.TimeSeriesView(origin=_child(r.root, "extra", k), name=k, axis_x=link)
+                rrb.TimeSeriesView(
+                    origin=_child(r.root, "input", s),
+                    name=title,
+                    axis_x=link,
+                    axis_y=rrb.ScalarAxis(range=y_range),
+                    plot_legend=legend,
+                )
+                for s, (title, y_range) in r.input_plots.items()
+            ]
+            if r.has_reference:
+                other_views.append(
+                    rrb.TimeSeriesView(
+                        origin=_child(r.root, "error"),
+                        name="error: actual - reference",
+                        axis_x=link,
+                        plot_legend=legend,
+                    )
+                )
+            other_views += [
+                rrb.TimeSeriesView(
+                    origin=_child(r.root, "extra", k), name=k, axis_x=link, plot_legend=legend
+                )
                 for k in r.extras
             ]
             columns: list[rrb.Container | rrb.View] = []
@@ -591,7 +773,7 @@ class RerunRecorder(Recorder):
                         ),
                     )
                 )
-                shares.append(2.0)
+                shares.append(1.5)
             columns += [rrb.Vertical(*state_views), rrb.Vertical(*other_views)]
             shares += [1.0, 1.0]
             tabs.append(rrb.Horizontal(*columns, column_shares=shares, name=r.name))

@@ -15,12 +15,14 @@
 The controller is seen only through :class:`~harness.interfaces.Controller`: every number above
 comes from timing ``act`` and reading the :class:`~harness.interfaces.StepInfo` it returns.
 
-Everything is recorded: the rollout (states, inputs, pose) under ``name``, and per state one
-plot ``{name}/tracking/<state>`` with the reference, the actual state and the model's prediction
-``Np`` steps ahead drawn at the time it predicts; the whole predicted horizon at every step is
-logged columnar under ``{name}/horizon/<state>`` ((T, Np): column i is the prediction i + 1
-steps ahead), and drawn as a path ahead of the car in the 3D view (``{name}/predicted_path``,
-:func:`predicted_path`). Tracking runs come first in the recording's tabs: they are the result.
+Everything is recorded: the rollout (states, inputs, pose) under ``name``, each state's plot
+drawing the reference, the actual state and the model's prediction ``Np`` steps ahead at the
+time it predicts (``{name}/state/<state>``, ``…/reference``, ``…/predicted_<Np>_ahead``), and
+actual - reference on one error plot (``{name}/error/<state>``); the whole predicted horizon at
+every step is logged columnar under ``{name}/horizon/<state>`` ((T, Np): column i is the
+prediction i + 1 steps ahead), and drawn as a path ahead of the car in the 3D view
+(``{name}/predicted_path``, :func:`predicted_path`). Tracking runs come first in the recording's
+tabs: they are the result.
 """
 
 from __future__ import annotations
@@ -168,28 +170,28 @@ def _record(
 ) -> None:
     poses = run.poses if np.all(np.isfinite(run.poses)) else None
     solve_ms = np.append(run.solve_time_s, np.nan) * 1e3
+    horizon = run.predicted.shape[1]
+    overlays: dict[str, np.ndarray] = {}
+    if horizon:
+        # The prediction Np steps ahead, drawn at the time it is a prediction of.
+        ahead = np.full_like(run.states, np.nan)
+        ahead[horizon:] = run.predicted[: max(len(ahead) - horizon, 0), -1]
+        overlays[f"predicted_{horizon}_ahead"] = ahead
     recorder.rollout(
         name,
         run.time_s,
         run.states,
         run.inputs,
         poses,
-        extra={"solve_time_ms": solve_ms, "error": run.states - run.reference},
+        extra={"solve_time_ms": solve_ms},
         priority=priority,
+        reference=run.reference,
+        overlays=overlays,
     )
-    horizon = run.predicted.shape[1]
     if poses is not None and horizon:
         recorder.path_ahead(name, run.time_s, predicted_path(run, dt))
-    for i, state in enumerate(STATE_NAMES):
-        path = f"{name}/tracking/{state}"
-        recorder.series(
-            path, run.time_s, {"reference": run.reference[:, i], "actual": run.states[:, i]}
-        )
-        if horizon:
-            # The prediction Np steps ahead, drawn at the time it is a prediction of.
-            ahead = run.time_s + horizon * dt
-            recorder.series(path, ahead, {f"predicted_{horizon}_ahead": run.predicted[:, -1, i]})
-            recorder.series(f"{name}/horizon/{state}", run.time_s, {"ahead": run.predicted[..., i]})
+    for i, state in enumerate(STATE_NAMES if horizon else ()):
+        recorder.series(f"{name}/horizon/{state}", run.time_s, {"ahead": run.predicted[..., i]})
 
 
 def predicted_path(run: TrackingTrajectory, dt: float) -> np.ndarray:

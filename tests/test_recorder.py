@@ -10,10 +10,23 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import Chunk, RrdReader
 
-from harness.recorder import CAR_HEIGHT_M, CAR_LENGTH_M, CAR_WIDTH_M, Recorder, RerunRecorder
+from harness.plant.params import SteeringParams
+from harness.plant.sedan import MJCF_PATH
+from harness.recorder import (
+    CAR_HEIGHT_M,
+    CAR_LENGTH_M,
+    CAR_WIDTH_M,
+    FRONT_AXLE_X_M,
+    REAR_AXLE_X_M,
+    WHEEL_RADIUS_M,
+    Recorder,
+    RerunRecorder,
+)
 
 N = 1000
 NAME = "step_steer"
+RATIO = SteeringParams().steering_ratio
+STATES = ("vx", "vy", "yaw_rate")
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -70,7 +83,7 @@ def written(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
     t = d["time_s"]
     extra = {"ay": d["states"][:, 0] * 2.0, "pred_state": d["states"] + 1.0}
     path = tmp_path / "run" / "characterize.rrd"  # parent dir does not exist yet
-    with RerunRecorder(path) as rec:
+    with RerunRecorder(path, steering_ratio=RATIO) as rec:
         rec.rollout(NAME, t, d["states"], d["inputs"], poses=d["poses"], extra=extra)
         rec.series("train/loss", np.arange(20), {"train": np.linspace(1, 0, 20)}, timeline="epoch")
     return path, {**d, **{f"extra_{k}": v for k, v in extra.items()}}
@@ -140,14 +153,16 @@ def test_series_are_bulk_logged_on_their_timeline_only(
 
 
 def test_car_pose_and_path(written: tuple[Path, dict[str, np.ndarray]]) -> None:
-    """The car box is sized as documented and its transform column follows the poses."""
+    """The car (body under a cabin) is sized as documented; its transform follows the poses."""
     path, d = written
     chunks = _chunks(path)
     car = f"/{NAME}/car"
-    half = np.asarray(_static(chunks, car, "Boxes3D:half_sizes"))
-    np.testing.assert_allclose(half, [[CAR_LENGTH_M / 2, CAR_WIDTH_M / 2, CAR_HEIGHT_M / 2]])
-    center = np.asarray(_static(chunks, car, "Boxes3D:centers"))
-    np.testing.assert_allclose(center, [[0.0, 0.0, CAR_HEIGHT_M / 2]])
+    half = np.asarray(_static(chunks, f"{car}/body", "Boxes3D:half_sizes"))
+    center = np.asarray(_static(chunks, f"{car}/body", "Boxes3D:centers"))
+    np.testing.assert_allclose(2 * half[0, :2], [CAR_LENGTH_M, CAR_WIDTH_M], rtol=1e-6)
+    np.testing.assert_allclose(center[:, :2].max(axis=0)[1], 0.0)  # centred on the pose
+    np.testing.assert_allclose(np.max(center[:, 2] + half[:, 2]), CAR_HEIGHT_M, rtol=1e-6)
+    assert center[1, 2] > center[0, 2]  # the cabin sits on the body
 
     _, trans, index = _temporal(chunks, car, "Transform3D:translation")
     assert index == "sim_time"
@@ -168,19 +183,114 @@ def test_car_pose_and_path(written: tuple[Path, dict[str, np.ndarray]]) -> None:
     np.testing.assert_allclose(pts[:, :2], d["poses"][:, :2], rtol=1e-5, atol=1e-5)
 
 
-def _blueprint_views(path: Path) -> list[tuple[str, str]]:
-    """(class identifier, space origin) of every view in the file's blueprint store."""
+def _wheel_yaw(chunks: list[Chunk], entity: str) -> np.ndarray:
+    """Yaw [rad] of a wheel's transform at every sample."""
+    _, quat, _ = _temporal(chunks, entity, "Transform3D:quaternion")
+    q = np.asarray([row[0] for row in quat.to_pylist()])  # xyzw
+    np.testing.assert_allclose(q[:, :2], 0.0)
+    return 2.0 * np.arctan2(q[:, 2], q[:, 3])
+
+
+def test_the_front_wheels_steer_by_the_road_wheel_angle(
+    written: tuple[Path, dict[str, np.ndarray]],
+) -> None:
+    """Front wheels turn by steer_wheel_deg / steering ratio at every sample; rear ones do not."""
+    path, d = written
+    chunks = _chunks(path)
+    road_wheel = np.deg2rad(d["inputs"][:, 0]) / RATIO
+    for corner in ("fl", "fr"):
+        wheel = f"/{NAME}/car/wheel_{corner}"
+        np.testing.assert_allclose(_wheel_yaw(chunks, wheel), road_wheel, atol=1e-6)
+        _, trans, _ = _temporal(chunks, wheel, "Transform3D:translation")
+        (x, y, z), *others = [row[0] for row in trans.to_pylist()]
+        assert all(other == [x, y, z] for other in others)  # the axle does not move
+        assert (x, np.sign(y)) == pytest.approx((FRONT_AXLE_X_M, 1 if corner == "fl" else -1))
+        assert z == pytest.approx(WHEEL_RADIUS_M)
+    for corner in ("rl", "rr"):
+        wheel = f"/{NAME}/car/wheel_{corner}"
+        x, y, _ = _static(chunks, wheel, "Transform3D:translation")[0]
+        assert (x, np.sign(y)) == pytest.approx((REAR_AXLE_X_M, 1 if corner == "rl" else -1))
+        assert not any(c.entity_path == wheel and not c.is_static for c in chunks)
+    assert _static(chunks, f"/{NAME}/car/wheel_fl", "Cylinders3D:radii") == [
+        pytest.approx(WHEEL_RADIUS_M)
+    ]
+
+
+def test_the_drawn_wheels_sit_where_the_plant_has_them() -> None:
+    """Axles and tyre radius of the drawing are the MJCF's (models/mjcf/sedan.xml)."""
+    mujoco = pytest.importorskip("mujoco")
+    model = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
+    assert model.body("corner_fl").pos[0] == pytest.approx(FRONT_AXLE_X_M)
+    assert model.body("corner_rl").pos[0] == pytest.approx(REAR_AXLE_X_M)
+    tyre = model.geom_size[model.body("wheel_fl").geomadr[0]][0]
+    assert tyre == pytest.approx(WHEEL_RADIUS_M)
+
+
+def test_without_a_steering_ratio_the_front_wheels_point_ahead(tmp_path: Path) -> None:
+    """recorder.steering_ratio unset: the wheels are drawn straight, never at a guessed angle."""
+    d = _rollout_data(30)
+    path = tmp_path / "straight.rrd"
+    with RerunRecorder(path) as rec:
+        rec.rollout("r", d["time_s"], d["states"], d["inputs"], poses=d["poses"])
+    np.testing.assert_allclose(_wheel_yaw(_chunks(path), "/r/car/wheel_fl"), 0.0)
+    for bad in (0.0, -16.0, float("nan")):
+        with pytest.raises(ValueError, match="steering_ratio"):
+            RerunRecorder(tmp_path / "bad.rrd", steering_ratio=bad)
+
+
+def _blueprint(path: Path) -> dict[str, dict[str, list]]:
+    """Every entity of the file's blueprint store: {component: its last value}."""
     reader = RrdReader(path)
     stores = reader.blueprints()
     assert len(stores) == 1, stores
-    views = []
+    found: dict[str, dict[str, list]] = {}
     for c in reader.stream(store=stores[0]).to_chunks():
         b = c.to_record_batch()
-        if "ViewBlueprint:class_identifier" in b.schema.names:
-            kind = b.column("ViewBlueprint:class_identifier").to_pylist()[-1][0]
-            origin = b.column("ViewBlueprint:space_origin").to_pylist()[-1][0]
-            views.append((kind, origin))
+        for name in b.schema.names:
+            if ":" in name and not name.startswith("rerun."):
+                found.setdefault(c.entity_path, {})[name] = b.column(name).to_pylist()[-1]
+    return found
+
+
+def _views(path: Path) -> list[dict]:
+    """Every view of the blueprint: kind, origin, name, content queries and y range."""
+    store = _blueprint(path)
+    views = []
+    for entity, values in store.items():
+        if "ViewBlueprint:class_identifier" in values:
+            axis = store.get(f"{entity}/ScalarAxis", {}).get("ScalarAxis:range")
+            views.append(
+                {
+                    "entity": entity,
+                    "kind": values["ViewBlueprint:class_identifier"][0],
+                    "origin": values["ViewBlueprint:space_origin"][0],
+                    "name": values["ViewBlueprint:display_name"][0],
+                    "contents": store[f"{entity}/ViewContents"]["ViewContents:query"],
+                    "y_range": None if axis is None else tuple(axis[0]),
+                }
+            )
     return views
+
+
+def _shows(view: dict, entity: str) -> bool:
+    """Whether a view's content queries (``$origin``, ``/**`` subtrees, ``- `` exclusions)
+    take in ``entity``: what the viewer draws in it."""
+
+    def matches(rule: str) -> bool:
+        rule = rule.replace("$origin", view["origin"])
+        if rule.endswith("/**"):
+            base = rule[: -len("/**")]
+            return entity == base or entity.startswith(base + "/")
+        return entity == rule
+
+    rules = [r.strip() for r in view["contents"]]
+    included = any(matches(r.removeprefix("+ ")) for r in rules if not r.startswith("- "))
+    return included and not any(matches(r[2:]) for r in rules if r.startswith("- "))
+
+
+def _blueprint_views(path: Path) -> list[tuple[str, str]]:
+    """(class identifier, space origin) of every view in the file's blueprint store."""
+    return [(v["kind"], v["origin"]) for v in _views(path)]
 
 
 def test_blueprint_is_in_the_file(written: tuple[Path, dict[str, np.ndarray]]) -> None:
@@ -218,18 +328,25 @@ def test_null_recorder_writes_nothing(tmp_path: Path) -> None:
 
 
 def test_partials_are_called_the_same_way(tmp_path: Path) -> None:
-    """Hydra `_partial_: true` configs for both recorders accept `path=` at run time."""
+    """Hydra `_partial_: true` configs for both recorders accept `path=` at run time; the
+    Rerun one takes the plant's steering ratio."""
     hydra_utils = pytest.importorskip("hydra.utils")
     omegaconf = pytest.importorskip("omegaconf")
     made = {}
     for name in ("rerun", "none"):
-        cfg = omegaconf.OmegaConf.load(REPO / "conf" / "recorder" / f"{name}.yaml")
-        factory = hydra_utils.instantiate(cfg)
+        cfg = omegaconf.OmegaConf.create(
+            {
+                "plant": {"steering": {"steering_ratio": 14.5}},
+                "recorder": omegaconf.OmegaConf.load(REPO / "conf" / "recorder" / f"{name}.yaml"),
+            }
+        )
+        factory = hydra_utils.instantiate(cfg.recorder)
         assert isinstance(factory, functools.partial)
         rec = factory(path=tmp_path / f"{name}.rrd")
         rec.close()
         made[name] = rec
     assert type(made["rerun"]) is RerunRecorder
+    assert made["rerun"].steering_ratio == 14.5
     assert type(made["none"]) is Recorder
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rerun.rrd"]
 
@@ -375,3 +492,122 @@ def test_tabs_follow_priority_then_logging_order(tmp_path: Path) -> None:
     assert blueprint is not None and blueprint.root_container is not None
     tabs = [tab.name for tab in blueprint.root_container.contents]
     assert tabs == ["lane_change", "test_drive", "data", "more"]
+
+
+LANE = "tracking/de_mpc/lane_change"
+
+
+@pytest.fixture
+def tracked(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    """A closed recording of one tracking rollout: reference, a prediction overlay, extras."""
+    d = _rollout_data(200)
+    d["reference"] = d["states"] + np.array([0.5, -0.1, 0.02])
+    d["predicted"] = d["states"] * 1.1
+    path = tmp_path / "pipeline.rrd"
+    with RerunRecorder(path, steering_ratio=RATIO) as rec:
+        rec.rollout(
+            LANE,
+            d["time_s"],
+            d["states"],
+            d["inputs"],
+            poses=d["poses"],
+            extra={"solve_time_ms": np.ones(200)},
+            priority=2,
+            reference=d["reference"],
+            overlays={"predicted_10_ahead": d["predicted"]},
+        )
+    return path, d
+
+
+def test_a_tracking_rollout_logs_reference_actual_and_error_named_per_state(
+    tracked: tuple[Path, dict[str, np.ndarray]],
+) -> None:
+    """Per state: the actual state, its reference and the overlay on the state's path, the error
+    (actual - reference) under error/; every line has a name, none is an index."""
+    path, d = tracked
+    chunks = _chunks(path)
+    root = "/tracking/de_mpc/lane_change"
+    for i, s in enumerate(STATES):
+        expected = {
+            f"{root}/state/{s}": (d["states"][:, i], "actual"),
+            f"{root}/state/{s}/reference": (d["reference"][:, i], "reference"),
+            f"{root}/state/{s}/predicted_10_ahead": (d["predicted"][:, i], "predicted_10_ahead"),
+            f"{root}/error/{s}": (d["states"][:, i] - d["reference"][:, i], f"{s} error"),
+        }
+        for entity, (values, name) in expected.items():
+            _, logged, _ = _temporal(chunks, entity, "Scalars:scalars")
+            got = logged.flatten().to_numpy(zero_copy_only=False)
+            np.testing.assert_allclose(got, values, rtol=1e-6, atol=1e-12)
+            assert _static(chunks, entity, "SeriesLines:names") == [name]
+    # Named series only: no line of the rollout is called "key[i]".
+    names = [
+        n
+        for c in chunks
+        if c.entity_path.startswith(root)
+        and "SeriesLines:names" in c.to_record_batch().schema.names
+        for n in c.to_record_batch().column("SeriesLines:names").to_pylist()[-1]
+    ]
+    assert names and not [n for n in names if "[" in n]
+    assert not any(c.entity_path.startswith(f"{root}/extra/error") for c in chunks)
+
+
+def test_the_default_view_plots_each_state_against_its_reference(
+    tracked: tuple[Path, dict[str, np.ndarray]],
+) -> None:
+    """The first tab's view of each state draws the reference and the actual state (both logged);
+    the error has its view; the steering plot's range is the steering used."""
+    path, d = tracked
+    root = "/tracking/de_mpc/lane_change"
+    views = {v["origin"]: v for v in _views(path)}
+    logged = {
+        c.entity_path
+        for c in _chunks(path)
+        if not c.is_static and "Scalars:scalars" in c.to_record_batch().schema.names
+    }
+    for s in STATES:
+        view = views[f"{root}/state/{s}"]
+        assert view["kind"] == "TimeSeries"
+        assert s in view["name"]
+        drawn = {e for e in logged if _shows(view, e)}
+        assert drawn == {
+            f"{root}/state/{s}",
+            f"{root}/state/{s}/reference",
+            f"{root}/state/{s}/predicted_10_ahead",
+        }
+    error = views[f"{root}/error"]
+    assert {e for e in logged if _shows(error, e)} == {f"{root}/error/{s}" for s in STATES}
+
+    steering = views[f"{root}/input/steer_wheel_deg"]
+    peak = np.max(np.abs(d["inputs"][:, 0]))
+    low, high = steering["y_range"]
+    assert low == pytest.approx(-high) and peak < high < 1.25 * peak  # fits, centred on 0
+    assert f"peak {peak:.0f}" in steering["name"]
+    pedal_low, pedal_high = views[f"{root}/input/pedal"]["y_range"]
+    assert pedal_low < d["inputs"][:, 1].min() and d["inputs"][:, 1].max() < pedal_high
+    # All of them are in the rollout's tab, the one the recording opens on.
+    store = _blueprint(path)
+    (tab,) = [e for e, v in store.items() if v.get("ContainerBlueprint:display_name") == [LANE]]
+    (tabs,) = [v for v in store.values() if "ContainerBlueprint:active_tab" in v]
+    assert tabs["ContainerBlueprint:active_tab"] == [tab.lstrip("/")]
+    in_tab, todo = set(), [tab]
+    while todo:
+        for child in store[todo.pop()].get("ContainerBlueprint:contents", []):
+            in_tab.add(f"/{child}")
+            todo.append(f"/{child}")
+    wanted = [f"{root}/state/{s}" for s in STATES] + [f"{root}/error", f"{root}/input/pedal"]
+    assert {views[o]["entity"] for o in wanted} <= in_tab
+
+
+def test_a_bad_reference_or_overlay_is_refused_before_anything_is_logged(tmp_path: Path) -> None:
+    """A reference or overlay of the wrong shape, or an overlay called "reference", logs nothing."""
+    d = _rollout_data(20)
+    path = tmp_path / "bad.rrd"
+    args = (d["time_s"], d["states"], d["inputs"])
+    with RerunRecorder(path) as rec:
+        with pytest.raises(ValueError, match="reference"):
+            rec.rollout("bad", *args, reference=d["states"][:, :2])
+        with pytest.raises(ValueError, match="overlays"):
+            rec.rollout("bad", *args, overlays={"p": d["states"][1:]})
+        with pytest.raises(ValueError, match="reference="):
+            rec.rollout("bad", *args, overlays={"reference": d["states"]})
+    assert not any(c.entity_path.startswith("/bad") for c in _chunks(path))

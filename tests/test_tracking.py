@@ -97,8 +97,25 @@ class ListeningRecorder(Recorder):
         self.rollouts: dict[str, dict] = {}
         self.series_calls: list[tuple[str, np.ndarray, dict]] = []
 
-    def rollout(self, name, time_s, states, inputs, poses=None, extra=None, **_) -> None:
-        self.rollouts[name] = {"time_s": time_s, "states": states, "extra": extra or {}}
+    def rollout(
+        self,
+        name,
+        time_s,
+        states,
+        inputs,
+        poses=None,
+        extra=None,
+        reference=None,
+        overlays=None,
+        **_,
+    ) -> None:
+        self.rollouts[name] = {
+            "time_s": time_s,
+            "states": states,
+            "extra": extra or {},
+            "reference": reference,
+            "overlays": overlays or {},
+        }
 
     def series(self, path, time_s, values, timeline="sim_time") -> None:
         self.series_calls.append((path, time_s, values))
@@ -130,13 +147,15 @@ def test_a_tracking_run_reports_records_and_plots(tmp_path: Path, monkeypatch) -
     assert sum(metrics["solve_paths"].values()) == metrics["steps"] == 299
     assert metrics["horizon"] == {"Np": 10, "Nc": 7}
     assert run.states.shape == reference.shape and run.predicted.shape == (300, 10, 3)
-    # The rollout, then one plot per state with reference, actual and prediction, then the
-    # whole horizon as columns.
-    assert recorder.rollouts["dlc"]["states"].shape == (300, 3)
-    assert "solve_time_ms" in recorder.rollouts["dlc"]["extra"]
-    keys = {(path, key) for path, _, values in recorder.series_calls for key in values}
-    assert {("dlc/tracking/vx", "reference"), ("dlc/tracking/vx", "actual")} <= keys
-    assert ("dlc/tracking/yaw_rate", "predicted_10_ahead") in keys
+    # The rollout with its reference (each state's plot: reference, actual and the prediction
+    # Np steps ahead, drawn at the time it predicts), then the whole horizon as columns.
+    logged = recorder.rollouts["dlc"]
+    assert logged["states"].shape == (300, 3)
+    np.testing.assert_array_equal(logged["reference"], reference)
+    assert set(logged["extra"]) == {"solve_time_ms"}
+    ahead = logged["overlays"]["predicted_10_ahead"]
+    assert np.all(np.isnan(ahead[:10]))
+    np.testing.assert_array_equal(ahead[10:], run.predicted[:-10, -1])
     horizon = next(v for p, _, v in recorder.series_calls if p == "dlc/horizon/vy")["ahead"]
     assert horizon.shape == (300, 10)
     # The figure: vx, vy, r each with the reference and the run, then the two inputs.
