@@ -110,6 +110,30 @@ def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
     again = run_main(tmp, tmp / "reuse", "learner=edmd", f"task.model_path={run_dir}/model_edmd.pt")
     assert again["training"]["source"].endswith("model_edmd.pt")
     assert again["prediction"] == metrics["prediction"]
+    # the file says it was trained on this plant and dataset: nothing differs
+    provenance = again["training"]["provenance"]
+    assert provenance == metrics["training"]["provenance"] and provenance["differs"] == []
+    assert provenance["trained_on"] == provenance["this_run"]
+    assert provenance["this_run"]["plant"] == "sedan"
+    assert provenance["this_run"]["dataset"] == metrics["data"]["key"]
+    assert provenance["this_run"]["normalizer"] == metrics["data"]["normalizer"]
+
+
+def test_a_saved_model_used_on_another_dataset_is_named_in_a_warning(edmd_run) -> None:
+    """``data.seed=7``: other drives, another normalizer; the run goes on, and says so."""
+    tmp, run_dir, metrics = edmd_run
+    out = tmp / "seed7"
+    other = run_main(
+        tmp, out, "learner=edmd", "data.seed=7", f"task.model_path={run_dir}/model_edmd.pt"
+    )
+    provenance = other["training"]["provenance"]
+    assert provenance["differs"] == ["dataset", "normalizer"]
+    assert provenance["trained_on"]["dataset"] == metrics["data"]["key"]
+    assert provenance["this_run"]["dataset"] == other["data"]["key"] != metrics["data"]["key"]
+    (job_log,) = out.glob("*.log")  # Hydra's job log
+    log = job_log.read_text()
+    assert f"task.model_path {run_dir / 'model_edmd.pt'} was trained on plant sedan" in log
+    assert "dataset and normalizer differ (training.provenance)" in log
 
 
 def test_a_reference_added_by_config_alone_is_tracked(edmd_run) -> None:

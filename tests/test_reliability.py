@@ -10,6 +10,7 @@ Hydra's own errors (a value of the wrong type) took several lines.
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import time
@@ -17,11 +18,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 
+import learners
 from controllers import DEMPCConfig
 from harness.config import validate
 from harness.data.episode import Episode, MinMaxNormalizer
@@ -30,6 +33,7 @@ from harness.paths import CONF_DIR
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
 from harness.plant.sedan import PlantUnstableError
+from harness.recorder import Recorder
 from harness.report.jobs import read_run
 from harness.tasks.pipeline import Pipeline, check_training_data
 from learners.bilinear import BilinearEDMD
@@ -317,3 +321,86 @@ def test_the_qp_size_check_lets_the_papers_horizons_pass() -> None:
     DEMPCConfig(Np=60, Nc=50)
     with pytest.raises(ValueError, match=r"controller.Np and controller.Nc"):
         DEMPCConfig(Np=10**12, Nc=7)
+
+
+# -- a model file is checked before any data, and its origin is compared (issue 26, 7 and 8) --
+
+
+def test_a_model_file_with_nan_is_refused_before_any_data(edmd_file: Path, tmp_path: Path) -> None:
+    """A NaN in A used to fail deep in the spectrum's eigenvalues, after data collection."""
+    payload = torch.load(edmd_file, weights_only=True)
+    payload["tensors"]["A"][2, 3] = float("nan")
+    torch.save(payload, tmp_path / "model_edmd.pt")
+    with pytest.raises(ValueError) as info:
+        _pipeline(EDMD(ThinPlateRBF(10)), "edmd", tmp_path / "model_edmd.pt")
+    assert str(info.value) == (
+        f"{tmp_path / 'model_edmd.pt'}: tensor 'A' has NaN at (2, 3): retrain the model, or "
+        "choose another model file"
+    )
+
+
+THIS_RUN = {"plant": "sedan", "plant_fingerprint": "f0", "dataset": "d0"}
+
+
+def _reuse(
+    path: Path, out: Path, caplog: pytest.LogCaptureFixture, normalizer: MinMaxNormalizer
+) -> dict:
+    """The pipeline's model stage with ``path`` as ``task.model_path``, in a run whose plant
+    and dataset are ``THIS_RUN`` (the training section of ``metrics.json``)."""
+    episodes = drive_episodes(2, duration_s=5.0)
+    dataset = Dataset(out, {"key": "d0"}, episodes[:1], [], episodes[1:], normalizer)
+    pipeline = _pipeline(EDMD(ThinPlateRBF(10)), "edmd", path)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="harness.provenance"):
+        _, training = pipeline._learner(dataset, THIS_RUN, Recorder(), out)
+    return training
+
+
+def test_a_model_of_another_plant_and_dataset_is_named_in_a_warning_and_the_metrics(
+    edmd_file: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``task.model_path=`` a ``plant=sedan_wet data.seed=7`` model: it runs (a deliberate
+    experiment may want that), but never without a word."""
+    model = learners.load(edmd_file)
+    elsewhere = {"plant": "sedan_wet", "plant_fingerprint": "f1", "dataset": "d7"}
+    path = model.save(tmp_path / "wet.pt", elsewhere)
+    ours = MinMaxNormalizer.fit(drive_episodes(3, duration_s=5.0)[2:])
+    training = _reuse(path, tmp_path, caplog, ours)
+    assert training["provenance"] == {
+        "trained_on": {**elsewhere, "normalizer": model.normalizer_.to_dict()},
+        "this_run": {**THIS_RUN, "normalizer": ours.to_dict()},
+        "differs": ["plant", "dataset", "normalizer"],
+    }
+    (record,) = caplog.records
+    assert record.getMessage().startswith(
+        f"task.model_path {path.resolve()} was trained on plant sedan_wet, dataset d7; this run "
+        "has plant sedan, dataset d0: plant, dataset and normalizer differ (training.provenance)"
+    )
+    assert "\n" not in record.getMessage()
+    # the run's copy of the model still says where it was trained, not where it was used
+    assert learners.load(training["model_path"]).provenance_ == elsewhere
+    json.dumps(training)  # metrics.json takes it as it is
+
+
+def test_a_model_of_this_plant_and_dataset_reloads_without_a_warning(
+    edmd_file: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    model = learners.load(edmd_file)
+    path = model.save(tmp_path / "same.pt", THIS_RUN)
+    training = _reuse(path, tmp_path, caplog, model.normalizer_)
+    assert training["provenance"]["differs"] == [] and not caplog.records
+    assert training["provenance"]["trained_on"] == training["provenance"]["this_run"]
+
+
+def test_a_model_file_from_before_provenance_compares_its_normalizer_only(
+    edmd_file: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """What an old file does not say is null and not compared; its normalizer still is."""
+    model = learners.load(edmd_file)
+    assert model.provenance_ == {}
+    same = _reuse(edmd_file, tmp_path, caplog, model.normalizer_)
+    assert same["provenance"]["differs"] == [] and not caplog.records
+    assert same["provenance"]["trained_on"]["plant"] is None
+    other = MinMaxNormalizer.fit(drive_episodes(3, duration_s=5.0)[2:])
+    assert _reuse(edmd_file, tmp_path, caplog, other)["provenance"]["differs"] == ["normalizer"]
+    assert "plant (not recorded), dataset (not recorded)" in caplog.records[0].getMessage()

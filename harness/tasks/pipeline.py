@@ -3,7 +3,9 @@
 Sections written to ``metrics.json``:
 
 - ``data``: the dataset used (see ``harness/data/collect.py``);
-- ``training``: the learner, its fit time and where the model file is;
+- ``training``: the learner, its fit time and where the model file is; ``training.provenance``
+  what the model was trained on against this run (a ``task.model_path`` of another plant,
+  dataset or normalizer is named in a warning; see ``harness/provenance.py``);
 - ``prediction``: per test episode, RMSE of the open-loop prediction over the whole episode
   and over re-initialised windows (see ``harness/prediction.py``);
 - ``robustness`` (learners trained with ``random_layer.enabled``): per test episode the RMSE's
@@ -39,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from controllers.config import OwnModelFactory
-from harness import spectrum, step_response, training_report
+from harness import provenance, spectrum, step_response, training_report
 from harness.artifacts import save_arrays
 from harness.config import as_object
 from harness.data.collect import prepare, reference_speeds
@@ -127,7 +129,8 @@ class Pipeline:
         if self.loaded is None:
             check_training_data(dataset)
         sections: dict[str, Any] = {"data": data_metrics}
-        learner, sections["training"] = self._learner(dataset, recorder, output_dir)
+        this_run = provenance.of_run(plant, dataset)
+        learner, sections["training"] = self._learner(dataset, this_run, recorder, output_dir)
         sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
         sections["prediction"]["step_response"] = self._step_response(
             learner, plant, recorder, output_dir
@@ -154,9 +157,14 @@ class Pipeline:
         return sections
 
     def _learner(
-        self, dataset: Dataset, recorder: Recorder, output_dir: Path
+        self,
+        dataset: Dataset,
+        this_run: Mapping[str, Any],
+        recorder: Recorder,
+        output_dir: Path,
     ) -> tuple[Learner, dict[str, Any]]:
-        """Fit (or load ``model_path``), save the model and its loss curves."""
+        """Fit (or load ``model_path``), save the model (with what it was trained on: this run,
+        or what the loaded file said) and its loss curves."""
         start = time.perf_counter()
         if self.loaded is not None:
             learner = self.loaded
@@ -172,13 +180,18 @@ class Pipeline:
             )
             source = "trained"
         fit_time = time.perf_counter() - start
-        model_file = learner.save(output_dir / f"model_{self.learner_name}.pt")
+        recorded = learner.provenance_ if self.loaded is not None else this_run
+        trained_on = provenance.compare(
+            source, recorded, learner.normalizer_, this_run, dataset.normalizer
+        )
+        model_file = learner.save(output_dir / f"model_{self.learner_name}.pt", recorded)
         summary = {
             "learner": self.learner_name,
             "source": source,
             "fit_time_s": fit_time,
             "model_path": str(model_file),
             "train_frames": sum(len(e) for e in dataset.train),
+            "provenance": trained_on,
         }
         if learner.fit_summary:
             summary["fit"] = learner.fit_summary
