@@ -2,41 +2,31 @@
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import sys
 import traceback
 from pathlib import Path
+from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException, MissingConfigException
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.config import register_configs, validate
+from harness.files import DirectoryInUseError, lock_directory, unlock_directory
 from harness.metrics import update_metrics, write_json_atomic
 from harness.paths import CONF_DIR
+from harness.report.jobs import job_dirname
 
 log = logging.getLogger(__name__)
 
-JOB_DIRNAME_BYTES = 200  # file names may have 255 bytes; Hydra adds nothing to the sweep subdir
-
-
-def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
-    """A sweep job's directory: its overrides with ``/`` (a path in a value) as ``_``, cut to
-    ``limit`` bytes plus a hash when longer (the full list is in ``.hydra/overrides.yaml``)."""
-    raw = overrides.replace("/", "_").encode()
-    if len(raw) <= limit:
-        return raw.decode()
-    digest = hashlib.sha256(raw).hexdigest()[:10]
-    return raw[: limit - len(digest) - 1].decode(errors="ignore") + "~" + digest
-
-
-OmegaConf.register_new_resolver("job_dirname", job_dirname, replace=True)
+OmegaConf.register_new_resolver("job_dirname", job_dirname, replace=True)  # a sweep subdir
 register_configs()  # before @hydra.main composes: the YAML files extend these schemas
 
 
@@ -92,12 +82,64 @@ def _record_failure(output_dir: Path, error: BaseException) -> str:
     return message
 
 
+class LockOutputDir(Callback):
+    """A run holds ``hydra.run.dir``, a sweep ``hydra.sweep.dir``, from before Hydra writes its
+    config there until it ends: a second run into it stops at once, in one line, before it has
+    overwritten anything (``hydra.callbacks.lock`` in ``conf/config.yaml``)."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        _hold_or_exit(config, "hydra.run.dir")
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        unlock_directory(str(config.hydra.run.dir))
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        _hold_or_exit(config, "hydra.sweep.dir")
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        unlock_directory(str(config.hydra.sweep.dir))
+
+
+def _hold_or_exit(config: DictConfig, key: str) -> None:
+    try:
+        directory = str(OmegaConf.select(config, key))
+    except OmegaConfBaseException:  # needs ${hydra:...}, set only in the job: _job locks it
+        return
+    try:
+        lock_directory(directory, key)
+    except DirectoryInUseError as error:
+        # Hydra turns a callback's exception into a warning and goes on: stop here instead.
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def _job(cfg: DictConfig) -> None:
     """One job: its failure is recorded in ``error.json`` and, outside a sweep, printed in one
-    line (exit 2 for the config's and the run's errors, 1 for anything else)."""
+    line (exit 2 for the config's and the run's errors, 1 for anything else).
+
+    The job holds its directory while it runs (a sweep's jobs each their own): a directory
+    another run holds is left untouched, the job refused in one line.
+    """
     hydra_cfg = HydraConfig.get()
     output_dir = Path(hydra_cfg.runtime.output_dir)
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
+    try:
+        taken = lock_directory(output_dir, "hydra.sweep.dir" if multirun else "hydra.run.dir")
+    except DirectoryInUseError as error:
+        log.error("%s", error)
+        if multirun:
+            return  # the other run's directory: no error.json of this job may land there
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)
+    try:
+        _run_and_record(cfg, output_dir, multirun)
+    finally:
+        if taken:
+            unlock_directory(output_dir)
+
+
+def _run_and_record(cfg: DictConfig, output_dir: Path, multirun: bool) -> None:
     # A rerun into the directory of a failed job: its old error must not outlive this run.
     (output_dir / "error.json").unlink(missing_ok=True)
     try:
@@ -105,7 +147,7 @@ def _job(cfg: DictConfig) -> None:
     except Exception as error:
         message = _record_failure(output_dir, error)
         log.error(message)
-        if hydra_cfg.mode == RunMode.MULTIRUN:
+        if multirun:
             return  # recorded in error.json; the other jobs of the sweep go on
         if isinstance(error, (ValueError, InstantiationException, RuntimeError)):
             print(f"error: {message}", file=sys.stderr)

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from harness.files import DirectoryInUseError, lock_directory, try_lock, unlock_directory
 
 CHARACTERIZE_KEYS = {
     "understeer_gradient_deg_per_g",
@@ -101,3 +105,58 @@ def test_a_long_override_list_still_makes_a_valid_distinct_job_directory() -> No
     names = {job_dirname(long_a), job_dirname(long_b)}
     assert len(names) == 2 and all(len(n.encode()) <= 200 for n in names)
     assert job_dirname("task.model_path=/runs/a/model.pt") == "task.model_path=_runs_a_model.pt"
+
+
+@pytest.mark.parametrize(("mode", "key"), [([], "hydra.run.dir"), (["-m"], "hydra.sweep.dir")])
+def test_a_directory_another_run_holds_is_refused_before_anything_is_written(
+    tmp_path: Path, mode: list[str], key: str
+) -> None:
+    """Two runs in one directory mixed their metrics, models and figures (issue 26)."""
+    run_dir = (tmp_path / "run").resolve()
+    run_dir.mkdir()
+    held = try_lock(run_dir / ".lock")  # the run writing there now (another open file)
+    assert held is not None
+    try:
+        result = run_harness(
+            tmp_path, *mode, "task=characterize", "recorder=none", f"{key}={run_dir}"
+        )
+    finally:
+        os.close(held)
+    assert result.returncode == 2, result.stderr[-2000:]
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert errors == [
+        f"error: {run_dir} is in use by another run (it holds {run_dir / '.lock'}); "
+        f"choose another {key}"
+    ]
+    assert [p.name for p in run_dir.iterdir()] == [".lock"]  # not even Hydra's .hydra/
+
+
+def test_a_killed_run_leaves_its_directory_free(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import time; from harness.files import lock_directory; "
+            f"lock_directory({str(run_dir)!r}, 'hydra.run.dir'); print('held', flush=True); "
+            "time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        with pytest.raises(DirectoryInUseError, match=r"choose another hydra\.run\.dir"):
+            lock_directory(run_dir, "hydra.run.dir")
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert lock_directory(run_dir, "hydra.run.dir")  # the lock died with its process
+    try:
+        assert not lock_directory(run_dir, "hydra.run.dir")  # held once per process
+        assert try_lock(run_dir / ".lock") is None  # but refused to any other open file
+    finally:
+        unlock_directory(run_dir)
+    free = try_lock(run_dir / ".lock")
+    assert free is not None
+    os.close(free)

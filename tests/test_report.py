@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -10,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from harness.report import Run, read_runs, report
+from harness.files import try_lock
+from harness.report import Run, main, read_runs, report
 from harness.report.figures import loss_figure
 from harness.report.tables import course_speed_table, course_table, generalization_table
 from tests.test_pipeline import TINY
@@ -92,6 +95,76 @@ def test_a_job_without_metrics_is_named(tiny_sweep: Path, tmp_path: Path) -> Non
 def test_an_empty_directory_is_refused_in_one_line(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="no Hydra job directories"):
         report(tmp_path)
+
+
+def test_a_directory_that_does_not_exist_is_named_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main([str(tmp_path / "typo")]) == 2
+    assert (
+        capsys.readouterr().err == f"error: {tmp_path / 'typo'} does not exist; give the "
+        "sweep's directory (hydra.sweep.dir)\n"
+    )
+    assert not (tmp_path / "typo").exists()
+
+
+def test_a_killed_sweep_counts_the_jobs_it_never_started_and_its_rerun_leaves_no_stale_file(
+    tiny_sweep: Path, tmp_path: Path
+) -> None:
+    """The 4 jobs of the sweep (``multirun.yaml``): one killed while saving a figure, one never
+    started; then the sweep rerun into the same directory, every job finished."""
+    copy = tmp_path / "sweep"
+    shutil.copytree(tiny_sweep, copy, ignore=shutil.ignore_patterns("bad"))
+    by_name = {j.name: j.path for j in read_runs(copy)}
+    (killed,) = [p for n, p in by_name.items() if "learner=edmd," in n and "seed=1" in n]
+    (never,) = [p for n, p in by_name.items() if "learner=elm_edmd," in n and "seed=1" in n]
+    (killed / "metrics.json").rename(tmp_path / "metrics.json")
+    half_written = killed / ".prediction_episode_0002.png.x1y2z3.tmp"
+    half_written.write_bytes(b"\x89PNG")
+    shutil.move(never, tmp_path / "never")
+    (copy / "report" / "stale.png").write_bytes(b"")  # a figure of an earlier report
+
+    held = try_lock(killed / ".lock")  # while the job is still running, its files are its own
+    assert held is not None
+    try:
+        report(copy)
+    finally:
+        os.close(held)
+    assert half_written.exists()
+    text = report(copy).read_text()
+    assert "2 of 4 jobs finished" in text
+    failures = (copy / "report" / "failures.csv").read_text().replace('"', "")
+    assert f"{killed.name},no metrics.json" in failures
+    assert f"{never.name},never started" in failures
+    assert not half_written.exists()  # left by a killed writer: removed once no run holds it
+    assert not (copy / "report" / "stale.png").exists()
+
+    (tmp_path / "metrics.json").rename(killed / "metrics.json")
+    shutil.move(tmp_path / "never", never)
+    text = report(copy).read_text()
+    assert "4 of 4 jobs finished" in text
+    assert not (copy / "report" / "failures.csv").exists()  # no job failed: no stale list
+    assert not list(copy.glob(".report*.tmp"))
+    linked = {line.split("](")[1].rstrip(")") for line in text.splitlines() if "](" in line}
+    assert {p.name for p in (copy / "report").glob("*.png")} == linked
+
+
+@pytest.mark.parametrize("damaged", ["metrics.json", ".hydra/hydra.yaml"])
+def test_a_damaged_job_file_is_named_in_the_failures_and_the_rest_reported(
+    tiny_sweep: Path, tmp_path: Path, damaged: str
+) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_sweep, copy)
+    (victim,) = [
+        j.path for j in read_runs(copy) if "learner=elm_edmd," in j.name and "seed=0" in j.name
+    ]
+    text = (victim / damaged).read_text()
+    (victim / damaged).write_text(text[: len(text) // 2] + "\n[torn")  # a torn copy
+    assert "4 of 6 jobs finished" in report(copy).read_text()
+    with (copy / "report" / "failures.csv").open() as handle:
+        reasons = {row[0]: row[1] for row in csv.reader(handle)}
+    assert str(victim / damaged.split("/")[0]) in reasons[victim.name]
+    assert "\n" not in reasons[victim.name]
 
 
 def test_the_report_redraws_the_paper_figures_with_every_learner(tiny_sweep: Path) -> None:

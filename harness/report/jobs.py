@@ -5,20 +5,33 @@ controller are the config-group options Hydra chose for it (``hydra.runtime.choi
 is the one its composed config ran with (``.hydra/config.yaml``), and its command-line overrides
 (``hydra.overrides.task``) are parsed with Hydra's own override grammar. The overrides that differ
 within a sweep, besides the ones naming a row, make a run's ``variant``.
+
+A sweep's ``multirun.yaml`` says which jobs it launches (the product of its choices, as Hydra's
+``BasicSweeper`` builds it): a job that never started (the sweep was stopped before it) is a run
+with an error, so is a job whose files cannot be read; none is dropped, none stops the report.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hydra._internal.config_loader_impl import get_overrides_dirname
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
+log = logging.getLogger(__name__)
+
 HYDRA_FILE = Path(".hydra") / "hydra.yaml"
+MULTIRUN_FILE = "multirun.yaml"  # Hydra's record of a sweep, in its directory
+NEVER_STARTED = "never started (no job directory: the sweep stopped before it)"
+JOB_DIRNAME_BYTES = 200  # file names may have 255 bytes; Hydra adds nothing to the sweep subdir
 
 # Overrides that name a row (or a line of a figure) of their own; never part of a variant.
 NAMED = frozenset({"learner", "plant", "controller", "seed"})
@@ -65,6 +78,17 @@ class Run:
         return str(self.choices.get(group) or "—")
 
 
+def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
+    """A sweep job's directory (``hydra.sweep.subdir``): its overrides with ``/`` (a path in a
+    value) as ``_``, cut to ``limit`` bytes plus a hash when longer (the full list is in
+    ``.hydra/overrides.yaml``)."""
+    raw = overrides.replace("/", "_").encode()
+    if len(raw) <= limit:
+        return raw.decode()
+    digest = hashlib.sha256(raw).hexdigest()[:10]
+    return raw[: limit - len(digest) - 1].decode(errors="ignore") + "~" + digest
+
+
 def parse_overrides(lines: Iterable[str]) -> dict[str, str]:
     """``key`` (``group@package`` for a group) -> value, as Hydra writes it in job directory
     names; a deleted entry (``~key``) has the value ``null``."""
@@ -78,26 +102,94 @@ def parse_overrides(lines: Iterable[str]) -> dict[str, str]:
 
 
 def read_run(directory: Path) -> Run:
-    """The run of one job directory; its metrics or error when it left them."""
-    hydra = OmegaConf.load(directory / HYDRA_FILE).hydra
-    config = OmegaConf.load(directory / ".hydra" / "config.yaml")
-    choices = OmegaConf.to_container(hydra.runtime.choices)
-    run = Run(
-        directory,
-        choices={str(k): None if v is None else str(v) for k, v in choices.items()},
-        overrides=parse_overrides(OmegaConf.to_container(hydra.overrides.task)),
-        seed=int(config.get("seed", 0)),
-    )
-    if (directory / "metrics.json").exists():
-        run.metrics = json.loads((directory / "metrics.json").read_text())
-    if (directory / "error.json").exists():
-        run.error = json.loads((directory / "error.json").read_text()).get("error", "failed")
+    """The run of one job directory; its metrics or error when it left them. A file that
+    cannot be read makes the error, naming the file."""
+    try:
+        hydra = OmegaConf.load(directory / HYDRA_FILE).hydra
+        config = OmegaConf.load(directory / ".hydra" / "config.yaml")
+        choices = OmegaConf.to_container(hydra.runtime.choices)
+        run = Run(
+            directory,
+            choices={str(k): None if v is None else str(v) for k, v in choices.items()},
+            overrides=parse_overrides(OmegaConf.to_container(hydra.overrides.task)),
+            seed=int(config.get("seed", 0)),
+        )
+    except Exception as error:  # YAML, OmegaConf or override syntax: any damage to .hydra/
+        message = f"{type(error).__name__}: {error}".splitlines()[0]
+        return Run(directory, error=f"{directory / '.hydra'} is unreadable ({message})")
+    metrics, metrics_error = _read_json(directory / "metrics.json")
+    if metrics_error is None:
+        run.metrics = metrics
+    failure, failure_error = _read_json(directory / "error.json")
+    if failure is not None:
+        run.error = str(failure.get("error", "failed"))
+    run.error = run.error or failure_error or metrics_error
     return run
 
 
+def _read_json(path: Path) -> tuple[dict[str, Any] | None, str | None]:
+    """A JSON object file and ``None``, or ``None`` and why it cannot be read (``None`` and
+    ``None`` when there is no such file)."""
+    if not path.exists():
+        return None, None
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        return None, f"{path} is unreadable ({error}); rerun the job"
+    if not isinstance(document, dict):
+        return None, f"{path} holds no JSON object; rerun the job"
+    return document, None
+
+
+def sweep_jobs(multirun: Path) -> list[tuple[str, dict[str, str]]] | None:
+    """Every job a sweep launches: its directory's name and its overrides as
+    :func:`parse_overrides` gives them. ``None`` where that cannot be known from ``multirun``
+    (another sweeper, a sweep over a glob, a damaged file)."""
+    try:
+        hydra = OmegaConf.load(multirun).hydra
+        if hydra.sweeper._target_.rsplit(".", 1)[-1] != BasicSweeper.__name__:
+            return None
+        params = hydra.sweeper.get("params") or {}
+        lines = [f"{k}={v}" for k, v in params.items()] + list(hydra.overrides.task)
+        parser = OverridesParser.create()
+        (batch,) = BasicSweeper.split_arguments(parser.parse_overrides(lines), None)
+        naming = hydra.job.config.override_dirname
+        jobs = []
+        for job in batch:
+            overrides = parser.parse_overrides(job)
+            name = get_overrides_dirname(
+                overrides, list(naming.exclude_keys), naming.item_sep, naming.kv_sep
+            )
+            jobs.append((job_dirname(name), parse_overrides(job)))
+        return jobs
+    except Exception as error:  # the jobs found still make the report
+        message = f"{type(error).__name__}: {error}".splitlines()[0]
+        log.warning(
+            "%s: the sweep's jobs are unknown (%s); counting those found", multirun, message
+        )
+        return None
+
+
 def read_runs(sweep_dir: Path) -> list[Run]:
-    """Every job below ``sweep_dir``, in the order of their directories."""
-    return [read_run(path.parent.parent) for path in sorted(sweep_dir.rglob(str(HYDRA_FILE)))]
+    """Every job below ``sweep_dir``, in the order of their directories, then every job a
+    sweep's ``multirun.yaml`` names that left no directory (with :data:`NEVER_STARTED`)."""
+    runs = [read_run(path.parent.parent) for path in sorted(sweep_dir.rglob(str(HYDRA_FILE)))]
+    for multirun in sorted(sweep_dir.rglob(MULTIRUN_FILE)):
+        jobs = sweep_jobs(multirun)
+        if jobs is None:
+            continue
+        started = [r.overrides for r in runs if _sweep_of(r.path) == multirun.parent]
+        runs += [
+            Run(multirun.parent / name, overrides=overrides, error=NEVER_STARTED)
+            for name, overrides in jobs
+            if overrides not in started and not (multirun.parent / name / HYDRA_FILE).exists()
+        ]
+    return runs
+
+
+def _sweep_of(job: Path) -> Path | None:
+    """The sweep directory a job directory belongs to: the nearest with a ``multirun.yaml``."""
+    return next((p for p in job.parents if (p / MULTIRUN_FILE).is_file()), None)
 
 
 def common_overrides(runs: Iterable[Run]) -> dict[str, str]:
