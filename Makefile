@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: help setup run test test-ray bench format lint
+.PHONY: help setup run test test-fp test-ray bench format lint
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
@@ -26,6 +26,14 @@ test: setup  ## lint and type-check, then the test suite (slow tests excluded)
 	$(BIN)/ruff check .
 	$(BIN)/mypy
 	$(BIN)/python -m pytest
+
+# The floating-point paths `make test-fp` runs the suite on, one after the other: one BLAS thread,
+# OpenBLAS's kernels for three CPU families, and NumPy without its AVX2/AVX-512 dispatch.
+FP_PATHS := OMP_NUM_THREADS=1 OPENBLAS_CORETYPE=Sandybridge OPENBLAS_CORETYPE=Haswell \
+	OPENBLAS_CORETYPE=Zen NPY_DISABLE_CPU_FEATURES=X86_V3
+
+test-fp: setup  ## the test suite once per floating-point path (BLAS threads, kernels, SIMD): ~5x `make test`
+	@for path in $(FP_PATHS); do echo "== $$path"; env $$path $(BIN)/python -m pytest -q || exit 1; done
 
 test-ray: setup  ## the Ray launcher's tests (installs the `ray` extra: ~60 packages, ~2 min)
 	$(BIN)/pip install --quiet -e '.[dev,ray]'
