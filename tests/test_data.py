@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pickle
 from collections.abc import Sequence
@@ -236,6 +237,26 @@ def test_normalizer_is_fitted_on_train_only_and_round_trips(stored) -> None:
     np.testing.assert_allclose(
         dataset.normalizer.inputs_inverse(dataset.normalizer.inputs(u)), u, atol=1e-12
     )
+
+
+def test_a_non_finite_value_is_named_by_array_column_and_time_and_no_normalizer_takes_it(
+    stored,
+) -> None:
+    good = load(stored[1]).train[0]
+    assert good.non_finite() is None
+    cases = [
+        ("inputs", (123, 0), "inputs has 1 non-finite value (steer_wheel_deg at t = 1.23 s)"),
+        ("states", ([90, 40], 2), "states has 2 non-finite values (first: yaw_rate at t = 0.40 s)"),
+        ("time_s", 3, "time_s has 1 non-finite value (row 3)"),
+    ]
+    for field, where, said in cases:
+        values = getattr(good, field).copy()
+        values[where] = np.inf if field == "inputs" else np.nan
+        bad = dataclasses.replace(good, name="episode_0003", **{field: values})
+        assert bad.non_finite() == said
+        with pytest.raises(ValueError) as info:
+            MinMaxNormalizer.fit([good, bad])
+        assert str(info.value) == f"cannot fit a normalizer: episode episode_0003 {said}"
 
 
 def test_same_config_reuses_and_a_changed_one_does_not(stored, sedan_module: Sedan) -> None:

@@ -22,6 +22,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from harness.config import validate
+from harness.data import store
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, DatasetError, collect, collect_counted, load
 from harness.paths import CONF_DIR
@@ -199,6 +200,61 @@ def test_a_damaged_manifest_beside_a_damaged_episode_keeps_the_good_ones_and_red
     assert any(
         str(victim) in w and "recollecting episode_0002 alone" in w for w in warnings_of(caplog)
     )
+    assert_same_bytes(copy, reference)
+
+
+def poison(path: Path, array: str, row: int, column: int, value: float) -> None:
+    """Write one non-finite value into an episode file, as a valid zip (its CRC-32 agrees)."""
+    with np.load(path) as stored:
+        arrays = {k: stored[k].copy() for k in stored.files}
+    arrays[array][row, column] = value
+    np.savez(path, **arrays)
+
+
+def test_a_non_finite_episode_without_a_manifest_is_named_and_recollected_alone(
+    reference: Path, tmp_path: Path, sedan: Sedan, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: NaN in a training drive failed in the manifest writer ('Out of range float
+    values are not JSON compliant', no file named); inf in a test drive exited 0 with every
+    prediction RMSE null."""
+    copy = copy_of(reference, tmp_path)
+    (copy / "manifest.json").unlink()
+    split = load(reference).manifest["split"]
+    train, test = (copy / f"{split[s][0]}.npz" for s in ("train", "test"))
+    poison(train, "states", 5, 1, np.nan)
+    poison(test, "inputs", 7, 0, np.inf)
+    assert collect_counted(sedan, tiny(tmp_path), DRY, progress=False) == (copy, 2)
+    named = {
+        train: "is damaged (states has 1 non-finite value (vy at t = 0.05 s)); recollecting",
+        test: "is damaged (inputs has 1 non-finite value (steer_wheel_deg at t = 0.07 s))",
+    }
+    for path, clause in named.items():
+        assert any(w.startswith(f"data: {path} {clause}") for w in warnings_of(caplog)), path
+    assert_same_bytes(copy, reference)
+
+
+def test_a_non_finite_episode_its_manifest_vouches_for_is_refused_naming_file_and_column(
+    reference: Path, tmp_path: Path, sedan: Sedan
+) -> None:
+    """A manifest rebuilt by an older harness from a poisoned file holds that file's checksum:
+    the file must go with the manifest, or recollecting it would contradict the checksum."""
+    copy = copy_of(reference, tmp_path)
+    test = copy / f"{load(reference).manifest['split']['test'][0]}.npz"
+    poison(test, "inputs", 7, 0, np.inf)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["episodes"][test.stem]["sha256"] = store._sha256(test)
+    store._write_manifest(copy, manifest)
+    with pytest.raises(DatasetError) as info:
+        load(copy)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(
+        f"data: {test}: inputs has 1 non-finite value (steer_wheel_deg at t = 0.07 s); "
+        f"delete it and {copy / 'manifest.json'}, then rerun the same collection"
+    )
+    test.unlink()
+    (copy / "manifest.json").unlink()  # what the message says to do
+    assert collect_counted(sedan, tiny(tmp_path), DRY, progress=False) == (copy, 1)
     assert_same_bytes(copy, reference)
 
 

@@ -8,7 +8,10 @@ from typing import Any
 
 import numpy as np
 
+from harness.interfaces import INPUT_NAMES, STATE_NAMES
 from harness.plant.sedan import BRAKE_MAX_MPA, THROTTLE_MAX
+
+POSE_NAMES = ("X", "Y", "yaw")
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,33 @@ class Episode:
 
     def __len__(self) -> int:
         return len(self.time_s)
+
+    def non_finite(self) -> str | None:
+        """What in this episode is NaN or infinite, as a clause naming the array, the column and
+        the time of the first such value (e.g. ``inputs has 1 non-finite value (steer_wheel_deg
+        at t = 2.31 s)``); None when every value is finite.
+
+        A NaN in a stored drive does not stop where it is read: it turns the normalizer, the fit
+        or an RMSE into NaN (or ``null`` in JSON) far from the file that holds it.
+        """
+        columns = {"states": STATE_NAMES, "inputs": INPUT_NAMES, "poses": POSE_NAMES}
+        for field_name in ("time_s", "states", "inputs", "poses"):
+            values = np.asarray(getattr(self, field_name))
+            bad = ~np.isfinite(values)
+            count = int(bad.sum())
+            if not count:
+                continue
+            row, *column = np.argwhere(bad)[0]
+            time = float(self.time_s[row]) if np.isfinite(self.time_s[row]) else None
+            where = f"t = {time:.2f} s" if time is not None else f"row {row}"
+            if column:
+                names = columns[field_name]
+                name = names[column[0]] if column[0] < len(names) else f"column {column[0]}"
+                where = f"{name} at {where}"
+            plural = "value" if count == 1 else "values"
+            first = "" if count == 1 else "first: "
+            return f"{field_name} has {count} non-finite {plural} ({first}{where})"
+        return None
 
 
 def pedal_scale(pedal: np.ndarray) -> np.ndarray:
@@ -66,6 +96,10 @@ class MinMaxNormalizer:
     def fit(cls, episodes: Sequence[Episode]) -> MinMaxNormalizer:
         if not episodes:
             raise ValueError("cannot fit a normalizer on zero episodes")
+        for episode in episodes:  # a NaN would pass min() and max() on to every model and file
+            problem = episode.non_finite()
+            if problem is not None:
+                raise ValueError(f"cannot fit a normalizer: episode {episode.name} {problem}")
         states = np.concatenate([e.states for e in episodes])
         inputs = np.concatenate([_input_features(e.inputs) for e in episodes])
         return cls(states.min(0), states.max(0), inputs.min(0), inputs.max(0))

@@ -31,6 +31,10 @@ What the store guarantees (``tests/test_store_faults.py`` injects each fault):
   in it is derived from the config, the plant and those files, so the rebuilt manifest has the
   bytes of the original (as long as the package versions it records have not changed).
 - ``load`` never uses a file that fails a checksum: it stops with one line naming the file.
+- No episode holding a NaN or an infinity is used, nor reaches the normalizer or the manifest:
+  every read goes through ``_read_episode``. Without a manifest such a file is recollected
+  alone (the warning names the file, the array, the column and the time); one that a manifest
+  vouches for stops ``load`` in one line saying to delete it and the manifest.
 - A disk that is full or not writable stops the collection with one line naming the directory.
 - Worker processes exit as soon as their parent dies or is interrupted (SIGKILL, SIGTERM,
   Ctrl-C): each watches a pipe that only the parent holds open.
@@ -378,18 +382,35 @@ def _check_episode_file(path: Path, planned: int, dt: float) -> dict[str, Any]:
     shorter than planned is one where the car spun (``drive_episode`` stops there).
 
     Raises ``ValueError`` (or ``OSError``, ``zipfile.BadZipFile``) saying what is wrong."""
+    episode = _read_episode(path, path.stem)
+    steps = len(episode)
+    if not 2 <= steps <= planned:
+        raise ValueError(f"has {steps} steps ({planned} planned)")
+    if not np.array_equal(episode.time_s, np.arange(steps) * dt):
+        raise ValueError("has another time axis")
+    return _entry(path, steps, steps < planned)
+
+
+def _read_episode(path: Path, name: str) -> Episode:
+    """The episode in ``path``: every read of an episode file goes through here, so a NaN or an
+    infinity in it is refused by file name before a normalizer, a fit or a manifest sees it.
+
+    Raises ``ValueError`` (or ``OSError``, ``zipfile.BadZipFile``) with a clause saying what is
+    wrong (the caller names the file)."""
     with np.load(path) as arrays:
         if sorted(arrays.files) != ["inputs", "poses", "states", "time_s"]:
             raise ValueError(f"holds arrays {sorted(arrays.files)}")
         time_s, states = arrays["time_s"], arrays["states"]
         inputs, poses = arrays["inputs"], arrays["poses"]
-    steps = len(time_s)
-    shapes = (states.shape, inputs.shape, poses.shape)
-    if not 2 <= steps <= planned or shapes != ((steps, 3), (steps, 2), (steps, 3)):
-        raise ValueError(f"has {steps} steps of shapes {shapes} ({planned} planned)")
-    if not np.array_equal(time_s, np.arange(steps) * dt):
-        raise ValueError("has another time axis")
-    return _entry(path, steps, steps < planned)
+    steps = len(time_s) if time_s.ndim == 1 else -1
+    shapes = (time_s.shape, states.shape, inputs.shape, poses.shape)
+    if shapes != ((steps,), (steps, 3), (steps, 2), (steps, 3)):
+        raise ValueError(f"holds arrays of shapes {shapes} (time_s, states, inputs, poses)")
+    episode = Episode(name, time_s, states, inputs, poses)
+    problem = episode.non_finite()
+    if problem is not None:
+        raise ValueError(problem)
+    return episode
 
 
 def _verify(directory: Path, episodes: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
@@ -638,15 +659,16 @@ def _episodes_from_files(
 
 
 def _load_episode(directory: Path, name: str, manifest: dict[str, Any]) -> Episode:
+    """Episode ``name``, whose file has passed its checksum: a file that still cannot be used is
+    one the manifest vouches for (rebuilt from it by an older harness, or edited with it), so
+    both must go for the collection to drive the episode again."""
     path = directory / manifest["episodes"][name]["file"]
     try:
-        with np.load(path) as arrays:
-            return Episode(
-                name, arrays["time_s"], arrays["states"], arrays["inputs"], arrays["poses"]
-            )
+        return _read_episode(path, name)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
         raise DatasetError(
-            f"data: cannot read {path} ({error}); {RERUN} to recollect it alone"
+            f"data: {path}: {error}; delete it and {directory / MANIFEST}, then {RERUN} to "
+            f"recollect {name} alone"
         ) from error
 
 
