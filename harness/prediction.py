@@ -17,6 +17,7 @@ layer anew each time (the paper's second experiment), and reports the RMSE's mea
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,7 @@ __all__ = [
 
 STATE_NAMES = ("vx", "vy", "yaw_rate")
 _UNITS = ("m/s", "m/s", "rad/s")
+log = logging.getLogger(__name__)
 _REPEAT_CHUNK = 25  # repeated predictions per batched rollout (bounds memory on long episodes)
 
 
@@ -121,6 +123,7 @@ def evaluate(
         predictions = {}
         for name, learner in learners.items():
             pred = open_loop(learner, episode)
+            _warn_diverged(name, episode, pred)
             predictions[name] = pred
             results[name][episode.name] = {
                 "rmse": rmse(pred, episode.states),
@@ -150,6 +153,23 @@ def evaluate(
                 **{f"predicted_{name}": p for name, p in predictions.items()},
             )
     return results
+
+
+def _warn_diverged(name: str, episode: Episode, predicted: np.ndarray) -> None:
+    """Say which learner diverged on which drive, and when: in ``metrics.json`` it is only a
+    null RMSE, and a controller on that model is the next to meet the NaN."""
+    bad = ~np.all(np.isfinite(predicted), axis=-1)
+    if bad.any():
+        first = int(np.argmax(bad))
+        log.warning(
+            "prediction: %s's open-loop prediction of %s is not finite from t = %.2f s on (%d "
+            "of %d steps): it diverged there, so its RMSE is inf (null in metrics.json)",
+            name,
+            episode.name,
+            episode.time_s[first],
+            int(bad.sum()),
+            len(bad),
+        )
 
 
 def by_episode(results: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:

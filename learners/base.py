@@ -32,6 +32,7 @@ import torch
 
 from harness.data.episode import Episode, MinMaxNormalizer
 from harness.files import write_atomic
+from harness.interfaces import INPUT_NAMES, STATE_NAMES
 
 __all__ = [
     "FORMAT",
@@ -389,15 +390,20 @@ def check_int(key: str, value: Any, minimum: int) -> int:
     return int(value)
 
 
+def is_number(value: Any) -> bool:
+    """A real number: not a bool, nor a string that reads as one (``'1e-4'``)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def check_positive(key: str, value: Any) -> float:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    check(ok and value > 0, key, "> 0", value)
+    check(is_number(value), key, "a number > 0", value)
+    check(math.isfinite(value) and value > 0, key, "> 0", value)
     return float(value)
 
 
 def check_nonnegative(key: str, value: Any) -> float:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    check(ok and value >= 0, key, ">= 0", value)
+    check(is_number(value), key, "a number >= 0", value)
+    check(math.isfinite(value) and value >= 0, key, ">= 0", value)
     return float(value)
 
 
@@ -427,12 +433,43 @@ def check_episodes(
 
 
 def check_fit_data(
-    train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
+    train: Sequence[Episode],
+    validation: Sequence[Episode],
+    normalizer: MinMaxNormalizer,
+    learner: str,
 ) -> None:
-    """What every ``fit`` checks first: the training episodes, and the validation ones if any."""
+    """What every ``fit`` checks first: the training episodes, and the validation ones if any;
+    and that every state and input varies in the training ones (``learner`` names the fit)."""
     check_episodes(train, "train", normalizer)
     if validation:
         check_episodes(validation, "validation", normalizer)
+    check_varied(train, learner)
+
+
+# A training column whose range is below this, in its unit (relative to its size where that is
+# above 1), never varied: no model learns what it does, and min-max scaling by that range sends
+# any other value a million spans and more away (a steering wheel held within 1e-9 deg gave input
+# EDMD NaN predictions, and DE-MPC a QP that failed, far from the cause).
+MIN_TRAINING_RANGE = 1e-6
+
+
+def check_varied(train: Sequence[Episode], learner: str) -> None:
+    """Refuse, in one line naming the learner and the column, training drives in which a state or
+    an input stays (all but) constant (see ``MIN_TRAINING_RANGE``)."""
+    for field, names in (("states", STATE_NAMES), ("inputs", INPUT_NAMES)):
+        values = np.concatenate([getattr(e, field) for e in train])
+        low, high = values.min(0), values.max(0)
+        size = np.maximum(np.maximum(np.abs(low), np.abs(high)), 1.0)
+        constant = np.flatnonzero(high - low < MIN_TRAINING_RANGE * size)
+        if constant.size:
+            column = int(constant[0])
+            name = names[column] if values.shape[1] == len(names) else f"{field}[{column}]"
+            raise ValueError(
+                f"{learner} cannot learn from the training drives: {name} stays at "
+                f"{low[column]:.6g} (range {high[column] - low[column]:.1e} over {len(values)} "
+                f"frames), so what it does is not in the data; collect drives that vary {name} "
+                "(data.driver.*)"
+            )
 
 
 def check_rollout_args(x0: np.ndarray, inputs: np.ndarray, n: int, m: int) -> tuple:

@@ -102,7 +102,7 @@ class EDMD(KoopmanLearner):
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on all one-step pairs of ``train``; ``validation`` is only checked."""
-        check_fit_data(train, validation, normalizer)
+        check_fit_data(train, validation, normalizer, self.name)
         n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
         self.check_size(max(len(e) for e in train), n, m)
         self._check_enough_pairs(sum(len(e) - 1 for e in train), n, m)

@@ -47,10 +47,12 @@ from learners.base import (
     Dim,
     Learner,
     Shape,
+    check,
     check_fit_data,
     check_int,
     check_nonnegative,
     check_rollout_args,
+    is_number,
 )
 from learners.dictionaries import Dictionary, ThinPlateRBF, dictionary_from
 from learners.linalg import Triangle, row_chunks
@@ -93,10 +95,7 @@ class InputEDMD(Learner):
         self.dictionary = dictionary_from(
             dictionary if dictionary is not None else ThinPlateRBF(500, center_draw="samples")
         )
-        ridges = [ridge] if isinstance(ridge, int | float) else list(ridge)
-        if not ridges:
-            raise ValueError("learner.ridge must hold at least one value (got an empty list)")
-        self.ridges = [check_nonnegative("ridge", r) for r in ridges]
+        self.ridges = _ridges(ridge)
         self.include_constant = bool(include_constant)
         self.seed = check_int("seed", seed, 0)
         self._hyperparameters: dict[str, Any] = {
@@ -112,7 +111,7 @@ class InputEDMD(Learner):
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on every one-step pair of ``train``; the ridge by ``validation``."""
-        check_fit_data(train, validation, normalizer)
+        check_fit_data(train, validation, normalizer, self.name)
         if not validation and len(self.ridges) > 1:
             raise ValueError(
                 f"learner.ridge lists {len(self.ridges)} weights to choose from on the "
@@ -280,3 +279,15 @@ class InputEDMD(Learner):
         self.dictionary.set_state(
             {k: v.numpy() for k, v in state.items() if k not in ("theta", "ridge")}
         )
+
+
+def _ridges(ridge: Any) -> list[float]:
+    """``learner.ridge`` as a list: one number or a non-empty list of numbers, each >= 0. A
+    string is neither, even ``'1e-4'`` (a quoted override): iterated, it is its characters."""
+    wanted = "a number >= 0 or a non-empty list of them"
+    values = [ridge] if is_number(ridge) else ridge
+    if isinstance(values, str | bytes) or not isinstance(values, Sequence) or not values:
+        check(False, "ridge", wanted, ridge)
+    for value in values:
+        check(is_number(value), "ridge", wanted, ridge)
+    return [check_nonnegative("ridge", value) for value in values]

@@ -102,7 +102,7 @@ class SingleTrack(Learner):
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
         """Least squares on the Euler one-step derivatives of ``train`` (module docstring)."""
-        check_fit_data(train, validation, normalizer)
+        check_fit_data(train, validation, normalizer, self.name)
         steps = np.concatenate([np.diff(e.time_s) for e in train])
         dt = float(np.median(steps))
         x = np.concatenate([e.states[:-1] for e in train])

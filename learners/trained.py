@@ -96,7 +96,7 @@ class TrainedLearner(Learner):
     ) -> Self:
         """Train on windows of ``train``; early-stop on ``validation``; resume from
         ``checkpoint_dir`` when it holds this run's checkpoint."""
-        check_fit_data(train, validation, normalizer)
+        check_fit_data(train, validation, normalizer, self.name)
         self.normalizer_ = normalizer
         n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
         self._build(n, m)

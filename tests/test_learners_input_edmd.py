@@ -5,15 +5,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hydra.utils import instantiate
 
 from controllers import DEMPC, DEMPCConfig, TimeVaryingQP
-from harness.data.episode import Episode
+from harness.data.episode import Episode, MinMaxNormalizer
 from harness.interfaces import LiftedModel, LinearizableModel
 from harness.prediction import open_loop, rmse
 from learners import RandomFeatures, ThinPlateRBF
 from learners.bilinear import BilinearEDMD
+from learners.edmd import EDMD
 from learners.input_edmd import InputEDMD
 from tests.test_dnn_mpc import OwnModelPlant
+from tests.test_learners import compose_learner
 from tests.test_learners_edmd import NORMALIZER
 
 DT = 0.01
@@ -106,6 +109,57 @@ def test_a_fit_whose_every_ridge_diverges_is_refused_in_one_line(monkeypatch) ->
             episodes_of(affine_step), episodes_of(affine_step, 1, seed=1), NORMALIZER
         )
     assert "\n" not in str(info.value)
+
+
+def held_steering(episodes: list[Episode], wander_deg: float) -> list[Episode]:
+    """The drives with the wheel held at 10 deg, give or take ``wander_deg``."""
+    rng = np.random.default_rng(0)
+    held = []
+    for e in episodes:
+        inputs = e.inputs.copy()
+        inputs[:, 0] = 10.0 + wander_deg * rng.uniform(size=len(e))
+        held.append(Episode(e.name, e.time_s, e.states, inputs, e.poses))
+    return held
+
+
+@pytest.mark.parametrize("wander_deg", [0.0, 1e-9])
+def test_drives_that_never_turn_the_wheel_are_refused_naming_the_learner(wander_deg) -> None:
+    """Such a fit went through; its prediction of a drive that steers was NaN from the first
+    steps (min-max scaling by a 1e-9 deg range), and DE-MPC failed on its QP."""
+    train = held_steering(episodes_of(saturating_step), wander_deg)
+    validation = held_steering(episodes_of(saturating_step, 2, seed=2), wander_deg)
+    with pytest.raises(ValueError) as info:
+        InputEDMD(ThinPlateRBF(60, center_draw="samples")).fit(
+            train, validation, MinMaxNormalizer.fit(train)
+        )
+    message = str(info.value)
+    assert message.startswith(
+        "input_edmd cannot learn from the training drives: steer_wheel_deg stays at 10 "
+    )
+    assert "collect drives that vary steer_wheel_deg" in message and "\n" not in message
+
+
+@pytest.mark.parametrize("ridge", ["1e-4", [1e-6, "1e-4"], [], None, True])
+def test_a_ridge_that_is_not_a_number_or_a_list_of_numbers_says_so(ridge) -> None:
+    """A quoted ``learner.ridge='1e-4'`` is a string: it once read as '1', 'e', '-', '4'."""
+    with pytest.raises(ValueError) as info:
+        InputEDMD(ridge=ridge)
+    assert str(info.value) == (
+        f"learner.ridge must be a number >= 0 or a non-empty list of them (got {ridge!r})"
+    )
+    with pytest.raises(ValueError, match=r"^learner\.ridge must be a number >= 0 \(got '1e-4'\)"):
+        EDMD(ridge="1e-4")
+
+
+def test_a_quoted_ridge_on_the_command_line_is_refused_in_one_line() -> None:
+    with pytest.raises(Exception) as info:
+        instantiate(compose_learner("input_edmd", "learner.ridge='1e-4'"))
+    error = info.value.__cause__ or info.value
+    assert isinstance(error, ValueError)
+    assert (
+        str(error) == "learner.ridge must be a number >= 0 or a non-empty list of them (got '1e-4')"
+    )
+    assert instantiate(compose_learner("input_edmd", "learner.ridge=1e-4")).ridges == [1e-4]
 
 
 def test_centres_drawn_as_samples_are_distinct_data_points() -> None:

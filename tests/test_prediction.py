@@ -154,7 +154,9 @@ def test_evaluate_draws_the_paper_figure_and_records_truth_with_predictions(
         assert (tmp_path / f"prediction_{name}.png").stat().st_size > 20_000
 
 
-def test_a_diverging_model_reports_inf_not_nan() -> None:
+def test_a_diverging_model_reports_inf_not_nan_and_says_which_diverged_where(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     class Diverges(Hold):
         def predict(self, x0, inputs):
             out = super().predict(x0, inputs).astype(float)
@@ -163,6 +165,10 @@ def test_a_diverging_model_reports_inf_not_nan() -> None:
 
     metrics = evaluate({"bad": Diverges()}, [linear_episode("e", 50, 5)])["bad"]["e"]
     assert metrics["rmse"] == {"vx": np.inf, "vy": np.inf, "yaw_rate": np.inf}
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warning.startswith(
+        "prediction: bad's open-loop prediction of e is not finite from t = 0.05 s on (45 of 50"
+    )
 
 
 def test_robustness_summarizes_repeated_predictions(tmp_path: Path) -> None:

@@ -40,6 +40,8 @@ from learners.bilinear import BilinearEDMD
 from learners.dictionaries import ThinPlateRBF
 from learners.dnn import DNN
 from learners.edmd import EDMD
+from learners.input_edmd import InputEDMD
+from learners.single_track import SingleTrack
 from tests.toydata import drive_episodes
 
 TINY = [
@@ -285,6 +287,25 @@ def test_edmd_refuses_fewer_pairs_than_unknowns() -> None:
     # bilinear EDMD counts its input-times-state columns too: 4 + 2 + 2 * 3 = 12 > 8
     with pytest.raises(ValueError, match=r"BilinearEDMD .* 12 unknowns per row"):
         BilinearEDMD(ThinPlateRBF(0)).fit([episode], [], normalizer)
+
+
+@pytest.mark.parametrize(
+    "learner", [EDMD(ThinPlateRBF(5)), InputEDMD(ThinPlateRBF(5), ridge=1e-6), DNN(), SingleTrack()]
+)
+def test_drives_in_which_an_input_never_varied_are_refused_by_every_learner(learner) -> None:
+    """A pedal held at one value: no fit can learn what the pedal does, and min-max scaling by
+    its range (~0) throws every other pedal value out of bounds (input EDMD: NaN predictions)."""
+    train = []
+    for episode in drive_episodes(2, duration_s=2.0):
+        inputs = episode.inputs.copy()
+        inputs[:, 1] = 0.1 + np.linspace(0.0, 1e-9, len(inputs))
+        train.append(Episode(episode.name, episode.time_s, episode.states, inputs, episode.poses))
+    with pytest.raises(ValueError) as info:
+        learner.fit(train, [], MinMaxNormalizer.fit(train))
+    assert str(info.value).startswith(
+        f"{learner.name} cannot learn from the training drives: pedal stays at 0.1 (range 1.0e-09"
+    )
+    assert "collect drives that vary pedal" in str(info.value)
 
 
 # -- a model file is the configured learner, or refused (point 8) -----------------------------
