@@ -40,6 +40,8 @@ from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_M
 from harness.references.path import ReferencePath
 
 log = logging.getLogger(__name__)
+# QPSolution.status of a step whose model gave a non-finite linearisation (no QP was solved).
+MODEL_NOT_FINITE = "model_not_finite"
 
 STATES, INPUTS = 3, 2
 # Where a time-varying model is linearised: at every point of the previous plan (exact along
@@ -461,9 +463,19 @@ class DEMPC:
         guess = self._input_guess(v_prev)
         for _ in range(self.sqp_iterations):
             if self.config.linearization == "frozen":
-                set_model(*model.linearize(z[None], guess[:1]))
+                A, B, d = model.linearize(z[None], guess[:1])
             else:
-                set_model(*model.linearize(_rollout(model, z, guess), guess))
+                A, B, d = model.linearize(_rollout(model, z, guess), guess)
+            if not all(np.isfinite(a).all() for a in (A, B, d) if a is not None):
+                # The model, not the QP, has failed: a diverging rollout along the plan. The
+                # step falls back to the previous plan, counted as a failure, and says whose.
+                log.warning(
+                    "%s's linearisation along the plan is not finite (it diverges from this "
+                    "state under the planned inputs): DE-MPC falls back to its previous plan",
+                    type(self.model).__name__,
+                )
+                return QPSolution(np.zeros((self.Nc, INPUTS)), 0.0, "failed", 0, MODEL_NOT_FINITE)
+            set_model(A, B, d)
             solution = solve()
             if not solution.ok:
                 break

@@ -4,6 +4,7 @@ and DE-MPC closing the loop on bilinear models."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -280,3 +281,34 @@ def test_the_structured_dual_operator_equals_the_dense_one() -> None:
     p_inv = np.linalg.inv(qp.P)
     np.testing.assert_allclose(qp._K, qp.G @ p_inv @ qp.G.T, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(qp._Zt, (p_inv @ qp.G.T).T, rtol=1e-9, atol=1e-12)
+
+
+def test_a_model_that_diverges_along_the_plan_is_named_and_the_step_falls_back(
+    monkeypatch, caplog
+) -> None:
+    """A NaN linearisation is the model's failure, not the QP's: the controller says whose, applies
+    the previous plan's next move and counts a failure, and the run goes on."""
+    model = toy_bilinear_model()
+    reference = feasible_reference(model, steps=40)
+    controller = DEMPC(model, DEMPCConfig(Np=10, Nc=7))
+    controller.reset(reference)
+    x = reference[0]
+    _, first = controller.act(x, 0.0)
+    assert not first.fallback
+    linearization = controller.linearization
+    assert linearization is not None
+    exact = linearization.linearize
+
+    def diverged(z: np.ndarray, v: np.ndarray):
+        A, B, d = exact(z, v)
+        A = A.copy()
+        A[-1, 0, 0] = np.nan  # the rollout left the model's domain at the horizon's end
+        return A, B, d
+
+    monkeypatch.setattr(linearization, "linearize", diverged)
+    with caplog.at_level(logging.WARNING):
+        u, info = controller.act(x, 0.01)
+    assert info.fallback and info.solve_path == "failed" and np.isfinite(u).all()
+    np.testing.assert_allclose(u, first.planned_inputs[1])
+    assert f"{type(model).__name__}'s linearisation along the plan is not finite" in caplog.text
+    assert "Hessian" not in caplog.text
