@@ -18,8 +18,13 @@ from harness.interfaces import Controller, LiftedModel, LinearizableModel
 from learners.base import Learner
 
 
+@runtime_checkable
 class ControllerFactory(Protocol):
-    """Checked settings that build a controller on a fitted model (``instantiate(cfg)``)."""
+    """Checked settings that build a controller on a fitted model (``instantiate(cfg)``), and
+    the clock the loop runs it on (``COMPUTE_DELAYS``: the loop, not the controller, holds
+    each input; the controller built here compensates for it)."""
+
+    compute_delay: str
 
     def __call__(
         self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
@@ -31,6 +36,8 @@ class OwnModelFactory(Protocol):
     """A controller factory that brings its own model instead of the run's learner (the
     physics baseline): the pipeline fits ``learner()`` on the same training episodes and builds
     the controller on that."""
+
+    compute_delay: str
 
     def learner(self) -> Learner:
         """The unfitted model the controller runs on."""

@@ -15,7 +15,12 @@ u_t = u_{t-1} + Δu_{t|t} is applied (eq. 21). Everything runs in the model's no
   box bounds on v. The increments ±2.25°, ±0.004 throttle and ±0.18 MPa per step become
   2.25°/span and min(0.004/0.2, 0.18/9.1) = 0.0198 of the signed pedal scale per step (one
   limit for one pedal: the tighter of the two, brake 0.18 MPa, throttle 0.00396);
-- the slack ε is relative to each limit: |Δv| <= Δv_max·(1 + ε) (see ``condensed_qp``).
+- the slack ε is relative to each limit: |Δv| <= Δv_max·(1 + ε) (see ``condensed_qp``);
+- ``compute_delay: one_step``: the input computed from the measurement at t_k reaches the plant
+  at t_{k+1} (the loop holds it, ``harness.rollout.closed_loop``), while over [t_k, t_{k+1})
+  the plant still gets the input returned last step. The controller predicts z_{k+1} =
+  f(lift(x_k), v_{k-1}) (+ w, offset-free) with its own model and plans from there, against
+  the reference from k + 1 on: standard delay compensation, exact for an exact model.
 """
 
 from __future__ import annotations
@@ -35,7 +40,13 @@ from controllers.linearization import BilinearLinearization
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.budget import check_memory
 from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import BilinearModel, LiftedModel, LinearizableModel, StepInfo
+from harness.interfaces import (
+    COMPUTE_DELAYS,
+    BilinearModel,
+    LiftedModel,
+    LinearizableModel,
+    StepInfo,
+)
 from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 from harness.references.path import ReferencePath
 
@@ -110,9 +121,17 @@ class DEMPCConfig:
     # estimated from each step's one-step prediction error, w += gain · (z − ẑ).
     offset_free: bool = False
     offset_free_gain: float = 1.0
+    # The clock in the loop (COMPUTE_DELAYS): none, or one_step, each input applied one control
+    # period after its measurement and the state predicted that far before planning.
+    compute_delay: str = "none"
 
     def __post_init__(self) -> None:
         _check_types(self)
+        if self.compute_delay not in COMPUTE_DELAYS:
+            raise ValueError(
+                f"controller.compute_delay must be one of {', '.join(COMPUTE_DELAYS)} "
+                f"(got {self.compute_delay!r})"
+            )
         _check_horizons(self.Np, self.Nc)
         if not (float(self.sqp_iterations).is_integer() and 1 <= self.sqp_iterations <= 3):
             raise ValueError(
@@ -253,6 +272,7 @@ class DEMPC:
         self.C = C
         self.offset_free = bool(config.offset_free)
         self.offset_free_gain = float(config.offset_free_gain)
+        self.delay_steps = COMPUTE_DELAYS[config.compute_delay]
         self.frenet: FrenetOutputs | None = None
         self.path_qp: TimeVaryingQP | None = None
         if config.reference == "path":
@@ -316,15 +336,25 @@ class DEMPC:
     ) -> tuple[np.ndarray, StepInfo]:
         """Input (steer_wheel_deg, pedal) for measured state ``x`` at time ``t`` (s), and the
         horizon it plans: the model's predicted states under the plan, the plan itself.
-        ``pose`` (X, Y, yaw): needed when the run follows a path."""
+        ``pose`` (X, Y, yaw): needed when the run follows a path.
+
+        With ``compute_delay: one_step`` the input is the one to apply from t + dt: the plan
+        starts from the model's prediction of the state then, under the input returned last
+        step (which the plant gets meanwhile), and the pose moved on by that step's kinematics;
+        the predicted states still start one step after the measurement."""
         if self._reference is None:
             raise ValueError("DEMPC.reset(reference) must be called before act()")
         x = np.asarray(x, dtype=float)
-        k = min(round(t / self.dt), self._reference_steps - 1)
+        k = min(round(t / self.dt) + self.delay_steps, self._reference_steps - 1)
         z = np.asarray(self.model.lift(x), dtype=float)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
         v_prev = self._v_prev
         w = self._estimate_disturbance(z)
+        if self.delay_steps:
+            z = self._model_step(z, v_prev) if w is None else self._model_step(z, v_prev) + w
+            if pose is not None:
+                pose = _pose_ahead(np.asarray(pose, dtype=float), x, self.dt)
+            x = self.normalizer.states_inverse(self.C @ z)
         qp: CondensedQP = self.qp
         shift = np.zeros_like(y_ref)  # the LTI prediction's response to w (offset-free)
         if self._path is not None and self.path_qp is not None:
@@ -361,14 +391,16 @@ class DEMPC:
             )
         self._v_prev = plan[0]
         if w is not None:
-            self._z_expected = self._model_step(z, plan[0]) + w
+            # The next measurement's prediction: under delay, the state the plan started from.
+            self._z_expected = z if self.delay_steps else self._model_step(z, plan[0]) + w
         # The whole plan converts at the cost of its first move (elementwise, same bits).
         planned_inputs = self.normalizer.inputs_inverse(plan)
         u = np.clip(planned_inputs[0], self.u_min, self.u_max)
+        predicted = qp.predict(z, v_prev, dv)[:, :STATES] + shift.reshape(self.Np, -1)[:, :STATES]
+        if self.delay_steps:  # row i is i + 1 steps after the measurement, with or without delay
+            predicted = np.vstack([(self.C @ z)[None], predicted[:-1]])
         info = StepInfo(
-            predicted_states=self.normalizer.states_inverse(
-                qp.predict(z, v_prev, dv)[:, :STATES] + shift.reshape(self.Np, -1)[:, :STATES]
-            ),
+            predicted_states=self.normalizer.states_inverse(predicted),
             planned_inputs=planned_inputs,
             solve_path=solution.path,
             fallback=not solution.ok,
@@ -498,6 +530,14 @@ class DEMPC:
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
         return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
+
+
+def _pose_ahead(pose: np.ndarray, x: np.ndarray, dt: float) -> np.ndarray:
+    """(X, Y, yaw) one step on: planar kinematics under the state x at the step's start (the
+    plant's pose to first order, as ``harness.tracking.predicted_path`` draws it)."""
+    vx, vy, yaw_rate = x
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return pose + dt * np.array([vx * c - vy * s, vx * s + vy * c, yaw_rate])
 
 
 def _plus(d: np.ndarray | None, w: np.ndarray | None) -> np.ndarray | None:

@@ -28,6 +28,11 @@ if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import
 
 STATE_NAMES: tuple[str, ...] = ("vx", "vy", "yaw_rate")
 INPUT_NAMES: tuple[str, ...] = ("steer_wheel_deg", "pedal")
+# ``controller.compute_delay``: control periods between a measurement and the plant receiving
+# the input computed from it. The loop holds each input that long
+# (:func:`harness.rollout.closed_loop`); a controller that knows it predicts its model forward
+# as far (DE-MPC's delay compensation).
+COMPUTE_DELAYS: dict[str, int] = {"none": 0, "one_step": 1}
 
 
 @runtime_checkable

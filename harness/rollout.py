@@ -10,7 +10,9 @@ and the characterization tests (:func:`simulate`) are each a call of it with the
   of repeating the previous one (tracking, tests: the run ends there);
 - ``timed``: the wall time of every policy call (a controller's solve time);
 - ``keep_infos``: the :class:`~harness.interfaces.StepInfo` of every call (solve paths,
-  fallbacks, predicted horizons: :meth:`Rollout.predicted`).
+  fallbacks, predicted horizons: :meth:`Rollout.predicted`);
+- ``delay_steps``: the clock in the loop (``controller.compute_delay``): each input reaches the
+  plant that many control periods after the measurement it was computed from.
 
 Recording stays with the callers: each records other things, and a stored dataset is recorded
 from its files (a reused dataset is never driven).
@@ -90,6 +92,7 @@ def closed_loop(
     act_on_last: bool = False,
     timed: bool = False,
     keep_infos: bool = False,
+    delay_steps: int = 0,
 ) -> Rollout:
     """Reset ``plant`` (``seed``; at rest, or rolling at ``speed_mps``) and run ``frames`` frames.
 
@@ -98,9 +101,17 @@ def closed_loop(
     is checked from frame 2 on (every rollout keeps a start and one step): where it fires the
     run ends, with that frame (``keep_stop_frame``) or without it (a spin the data should not
     hold). A non-finite state stops the run with an error.
+
+    With ``delay_steps`` d, u_k is applied over [t_{k+d}, t_{k+d+1}): the policy's answer
+    arrives when its computation has used up d periods. Until the first one arrives the plant
+    gets u = 0 (wheel straight, no pedal: where every controller starts, ``DEMPC.reset``).
+    ``inputs[k]`` is what the plant received from t_k on, as without delay.
     """
     if frames < 2:
         raise ValueError(f"a rollout needs at least 2 frames (got {frames})")
+    if delay_steps < 0:
+        raise ValueError(f"a rollout's delay_steps must be >= 0 (got {delay_steps})")
+    pending = [np.zeros(2)] * delay_steps  # computed, not yet at the plant: oldest first
     states, inputs, poses = np.empty((frames, 3)), np.zeros((frames, 2)), np.empty((frames, 3))
     solve_time = np.full(frames, np.nan)
     infos: list[StepInfo] = []
@@ -118,7 +129,8 @@ def closed_loop(
         u, info = act(x, t)
         if timed:
             solve_time[k] = time.perf_counter() - start
-        inputs[k] = u
+        pending.append(np.asarray(u, dtype=float))
+        inputs[k] = pending.pop(0)
         acted = k + 1
         if keep_infos:
             infos.append(info)

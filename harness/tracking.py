@@ -10,7 +10,9 @@
 - ``steps``: control steps run;
 - ``solve_paths``: how many steps each solve path answered (DE-MPC: unconstrained,
   active_set, piqp, failed);
-- ``horizon``: {Np, Nc}, the lengths of the controller's predicted states and planned inputs.
+- ``horizon``: {Np, Nc}, the lengths of the controller's predicted states and planned inputs;
+- ``compute_delay``: the clock in the loop (``controller.compute_delay``): ``none``, each input
+  applied at the instant of its measurement, or ``one_step``, one control period later.
 
 The controller is seen only through :class:`~harness.interfaces.Controller`: every number above
 comes from timing ``act`` and reading the :class:`~harness.interfaces.StepInfo` it returns.
@@ -38,7 +40,14 @@ from matplotlib.figure import Figure
 
 from harness.artifacts import load_arrays, save_arrays
 from harness.figures import save_figure
-from harness.interfaces import INPUT_NAMES, STATE_NAMES, Controller, Plant, StepInfo
+from harness.interfaces import (
+    COMPUTE_DELAYS,
+    INPUT_NAMES,
+    STATE_NAMES,
+    Controller,
+    Plant,
+    StepInfo,
+)
 from harness.recorder import Recorder
 from harness.references.path import ReferencePath
 from harness.rollout import Trajectory, closed_loop
@@ -66,6 +75,7 @@ def track(
     arrays_path: Path | None = None,
     tab_priority: int = 1,
     path: ReferencePath | None = None,
+    compute_delay: str = "none",
 ) -> tuple[dict[str, Any], TrackingTrajectory]:
     """Track ``reference`` ((T, 3) states at plant.dt) from rest-or-rolling at its first speed.
 
@@ -73,8 +83,15 @@ def track(
     :func:`save_run`), which a sweep's report overlays across learners; ``tab_priority``: where
     its tab goes in the recording (see :meth:`Recorder.rollout`; tracking comes before data);
     ``path``: the line the reference drives along, given to the controller with the car's pose
-    every step (a path-following controller steers by them).
+    every step (a path-following controller steers by them); ``compute_delay``: how long the
+    loop holds each input before the plant receives it (``COMPUTE_DELAYS``), the controller's
+    own setting, which it compensates for if it knows how (DE-MPC does).
     """
+    if compute_delay not in COMPUTE_DELAYS:
+        raise ValueError(
+            f"controller.compute_delay must be one of {', '.join(COMPUTE_DELAYS)} "
+            f"(got {compute_delay!r})"
+        )
     reference = np.asarray(reference, dtype=float)
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
         raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
@@ -90,6 +107,7 @@ def track(
         speed_mps=float(reference[0, 0]),
         timed=True,
         keep_infos=True,
+        delay_steps=COMPUTE_DELAYS[compute_delay],
     )
     infos = loop.infos
     # The last sample has no step after it, hence no prediction (a NaN row) and no solve time.
@@ -106,6 +124,7 @@ def track(
     metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))
     metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
+    metrics["compute_delay"] = compute_delay
     _record(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)

@@ -165,6 +165,26 @@ def test_a_reference_added_by_config_alone_is_tracked(edmd_run) -> None:
     assert arrays["states"].shape == reference.shape  # the loop drove the whole reference
 
 
+def test_the_clock_in_the_loop_is_each_controllers_own_setting(edmd_run) -> None:
+    """``controller.compute_delay=one_step`` from the command line reaches the run's loop and
+    its metrics; a controller beside it keeps its own setting (none) and its undelayed run."""
+    tmp, run_dir, metrics = edmd_run
+    delayed = run_main(
+        tmp,
+        tmp / "delayed",
+        "learner=edmd",
+        f"task.model_path={run_dir}/model_edmd.pt",
+        "controller.compute_delay=one_step",
+        "+controller@task.extra_controllers.beside=de_mpc",
+    )
+    assert metrics["tracking"]["compute_delay"] == "none"
+    tracking = delayed["tracking"]
+    assert tracking["compute_delay"] == "one_step"
+    assert tracking["rmse"] != metrics["tracking"]["rmse"]  # another loop, another run
+    (beside,) = tracking["controllers"]["beside"].values()
+    assert beside["compute_delay"] == "none" and beside["rmse"] == metrics["tracking"]["rmse"]
+
+
 def test_deep_edmd_runs_the_whole_pipeline_on_a_tiny_budget(tmp_path: Path) -> None:
     run_dir = tmp_path / "deep"
     metrics = run_main(

@@ -34,13 +34,13 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controllers.config import OwnModelFactory
+from controllers.config import ControllerFactory, OwnModelFactory
 from harness import provenance, spectrum, step_response, training_report
 from harness.artifacts import save_arrays
 from harness.config import as_object
@@ -75,10 +75,10 @@ class Pipeline:
         data: Mapping[str, Any],
         learner: Learner,
         learner_name: str,
-        controller: Callable[..., Any] | None = None,
+        controller: ControllerFactory | None = None,
         *,
         controller_name: str = "de_mpc",
-        extra_controllers: Mapping[str, Callable[..., Any]] | None = None,
+        extra_controllers: Mapping[str, ControllerFactory] | None = None,
         other_plants: Mapping[str, Sedan] | None = None,
         model_path: str | None = None,
         prediction_window_steps: int = 41,
@@ -90,7 +90,7 @@ class Pipeline:
         self.learner, self.learner_name = learner, learner_name
         self.controllers = {controller_name: controller} if controller is not None else {}
         for name, make in (extra_controllers or {}).items():
-            if not callable(make):
+            if not isinstance(make, ControllerFactory):
                 raise ValueError(
                     f"task.extra_controllers.{name} must be a controller config (conf/controller/)"
                 )
@@ -268,6 +268,8 @@ class Pipeline:
             if isinstance(model, str):
                 by_controller[controller_name] = {"skipped": model}
                 continue
+            # The run's learner passed _not_lifted_linear; an own model is linearizable.
+            assert isinstance(model, LiftedModel | LinearizableModel)
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
                 controller = make_controller(model, plant.dt)
@@ -283,6 +285,7 @@ class Pipeline:
                     arrays_path=output_dir / f"{stem}.npz",
                     tab_priority=2 if name in courses else 1,  # the recording opens on a course
                     path=centre_lines.get(name),
+                    compute_delay=make_controller.compute_delay,
                 )
                 if name in courses:
                     metrics["path"] = {
