@@ -350,8 +350,10 @@ class DEMPC:
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
         v_prev = self._v_prev
         w = self._estimate_disturbance(z)
-        if self.delay_steps:
-            z = self._model_step(z, v_prev) if w is None else self._model_step(z, v_prev) + w
+        if self.delay_steps:  # from here on z, x and pose are those at t + dt, predicted
+            z = self._model_step(z, v_prev)
+            if w is not None:
+                z = z + w
             if pose is not None:
                 pose = _pose_ahead(np.asarray(pose, dtype=float), x, self.dt)
             x = self.normalizer.states_inverse(self.C @ z)
