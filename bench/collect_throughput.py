@@ -16,9 +16,9 @@ from hydra import compose, initialize_config_dir
 
 from bench.machine import describe
 from harness.config import as_object, register_configs
+from harness.core.paths import CONF_DIR
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, collect, load
-from harness.paths import CONF_DIR
 from harness.plant import Sedan
 
 

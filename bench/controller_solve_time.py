@@ -15,7 +15,7 @@ QP's prediction and Hessian are rebuilt every step, for the LTI model too); and 
 both ``qp_solver`` values: ``daqp`` (the default) and ``active_set`` (ours), the QPs' second
 solve path, run after run in the same process.
 
-Times are whole ``act`` calls as ``harness.tracking`` measures them (lift, linearisation,
+Times are whole ``act`` calls as ``harness.evaluation.tracking`` measures them (lift, linearisation,
 prediction matrices, QP, input recovery) on the machine as it is; the table says the load.
 """
 
@@ -30,15 +30,14 @@ import numpy as np
 
 from bench.machine import describe
 from controllers import DEMPC, DEMPCConfig
-from harness.data import Episode
+from harness.core.contracts import LiftedModel, LinearizableModel
+from harness.core.episode import Episode, MinMaxNormalizer
 from harness.data.driver import DriverKnowledge
-from harness.data.episode import MinMaxNormalizer
 from harness.data.store import DataConfig, drive_episode
-from harness.interfaces import LiftedModel, LinearizableModel
+from harness.evaluation.tracking import track
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import DoubleLaneChange, path_metrics
-from harness.tracking import track
 from learners.bilinear import BilinearEDMD
 from learners.edmd import EDMD
 from learners.single_track import SingleTrack

@@ -15,10 +15,10 @@ import numpy as np
 from hydra import compose, initialize_config_dir
 
 from harness.config import as_object, register_configs
+from harness.core.paths import CONF_DIR
 from harness.data.coverage import sawtooth_frames, steering_reversals
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
-from harness.paths import CONF_DIR
 from harness.plant import Sedan
 
 

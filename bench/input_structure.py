@@ -24,8 +24,8 @@ import numpy as np
 from bench.machine import describe
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, collect_counted, load
+from harness.evaluation.prediction import open_loop, rmse
 from harness.plant import Sedan
-from harness.prediction import open_loop, rmse
 from learners import EDMD, ThinPlateRBF
 from learners.base import Learner
 from learners.bilinear import BilinearEDMD

@@ -33,13 +33,13 @@ import numpy as np
 from bench.machine import describe
 from controllers import DEMPC, CondensedQP, DEMPCConfig
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
-from harness.data import Episode
+from harness.core.episode import Episode
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
+from harness.evaluation.tracking import track
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import double_lane_change, from_episode
-from harness.tracking import track
 
 PAPER_MS = {(10, 7): 4.7, (60, 50): 9.2}  # the paper's average computation times
 TARGETS_MS = {(10, 7): {"median": 0.05}, (60, 50): {"median": 0.5, "p99": 2.0, "max": 3.0}}

@@ -21,13 +21,13 @@ from typing import Any
 
 from bench.machine import describe
 from controllers import BicycleMPCConfig, DEMPCConfig
+from harness.core.contracts import LiftedModel, LinearizableModel
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, collect_counted, load
-from harness.interfaces import LiftedModel, LinearizableModel
+from harness.evaluation.tracking import track
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import DoubleLaneChange, path_metrics
-from harness.tracking import track
 from learners.base import Learner
 from learners.bilinear import BilinearEDMD
 from learners.edmd import EDMD

@@ -43,7 +43,7 @@ WARMUP = 100  # batches of the shorter of ours' two fits
 
 def synthetic_episodes(count: int, frames: int, seed: int):
     """Smooth random drives with the harness's state/input ranges (values do not matter)."""
-    from harness.data.episode import Episode
+    from harness.core.episode import Episode
 
     rng = np.random.default_rng(seed)
     episodes = []
@@ -60,7 +60,7 @@ def synthetic_episodes(count: int, frames: int, seed: int):
 
 
 def _data():
-    from harness.data.episode import MinMaxNormalizer
+    from harness.core.episode import MinMaxNormalizer
 
     train = synthetic_episodes(TRAIN_EPISODES, TRAIN_FRAMES, 0)
     validation = synthetic_episodes(2, 40_000, 1)
@@ -173,7 +173,7 @@ def _lifted(name: str):
     from hydra import compose, initialize_config_dir
     from hydra.utils import instantiate
 
-    from harness.paths import CONF_DIR
+    from harness.core.paths import CONF_DIR
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return instantiate(compose(config_name="config", overrides=[f"learner={name}"]).learner)

@@ -1,9 +1,12 @@
 """Controllers that act on the plant: the Koopman MPC (DE-MPC) solved with PIQP, time-varying
 for bilinear and linearizable models, and the single-track physics baseline (bicycle_mpc).
 
-A controller is a :class:`harness.interfaces.Controller`: ``reset(reference)`` before a run and
+A controller is a :class:`harness.core.contracts.Controller`: ``reset(reference)`` before a run and
 ``act(x, t) -> (u, StepInfo)`` every control period (physical units in and out). Its config
 builds a checked :class:`ControllerFactory`, which builds the controller on a fitted model.
+
+May import ``harness.core`` and ``learners`` (the baseline fits its own single-track model):
+no simulator, no recorder.
 """
 
 from controllers.bicycle_mpc import BicycleMPCConfig

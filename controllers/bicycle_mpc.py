@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from controllers.de_mpc import DEMPC, DEMPCConfig
-from harness.interfaces import LiftedModel, LinearizableModel
+from harness.core.contracts import LiftedModel, LinearizableModel
 from learners.single_track import SingleTrack
 
 

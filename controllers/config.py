@@ -14,7 +14,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from harness.interfaces import Controller, LiftedModel, LinearizableModel
+from harness.core.contracts import Controller, LiftedModel, LinearizableModel
 from learners.base import Learner
 
 

@@ -17,7 +17,7 @@ u_t = u_{t-1} + Δu_{t|t} is applied (eq. 21). Everything runs in the model's no
   limit for one pedal: the tighter of the two, brake 0.18 MPa, throttle 0.00396);
 - the slack ε is relative to each limit: |Δv| <= Δv_max·(1 + ε) (see ``condensed_qp``);
 - ``compute_delay: one_step``: the input computed from the measurement at t_k reaches the plant
-  at t_{k+1} (the loop holds it, ``harness.rollout.closed_loop``), while over [t_k, t_{k+1})
+  at t_{k+1} (the loop holds it, ``harness.plant.rollout.closed_loop``), while over [t_k, t_{k+1})
   the plant still gets the input returned last step. The controller predicts z_{k+1} =
   f(lift(x_k), v_{k-1}) (+ w, offset-free) with its own model and plans from there, against
   the reference from k + 1 on: standard delay compensation, exact for an exact model.
@@ -38,17 +38,17 @@ from controllers.blas import single_threaded
 from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
 from controllers.linearization import BilinearLinearization
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
-from harness.budget import check_memory
-from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import (
+from harness.core.budget import check_memory
+from harness.core.contracts import (
     COMPUTE_DELAYS,
     BilinearModel,
     LiftedModel,
     LinearizableModel,
     StepInfo,
 )
-from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
-from harness.references.path import ReferencePath
+from harness.core.episode import MinMaxNormalizer
+from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
+from harness.core.reference_path import ReferencePath
 
 log = logging.getLogger(__name__)
 # QPSolution.status of a step whose model gave a non-finite linearisation (no QP was solved).
@@ -215,8 +215,8 @@ class DEMPC:
 
     Settings are a :class:`DEMPCConfig` (checked there); the fitted model is given at run time.
     What the model is decides the QP: a lifted-linear model's prediction matrices are built once
-    (:class:`CondensedQP`); a bilinear model (:class:`~harness.interfaces.BilinearModel`) or
-    any :class:`~harness.interfaces.LinearizableModel` is linearised each step along the
+    (:class:`CondensedQP`); a bilinear model (:class:`~harness.core.contracts.BilinearModel`) or
+    any :class:`~harness.core.contracts.LinearizableModel` is linearised each step along the
     previous plan, shifted by one step and rolled out from the measured state, and solved as a
     :class:`TimeVaryingQP` (``sqp_iterations`` times, re-linearising along the new plan).
     """
@@ -536,7 +536,7 @@ class DEMPC:
 
 def _pose_ahead(pose: np.ndarray, x: np.ndarray, dt: float) -> np.ndarray:
     """(X, Y, yaw) one step on: planar kinematics under the state x at the step's start (the
-    plant's pose to first order, as ``harness.tracking.predicted_path`` draws it)."""
+    plant's pose to first order, as ``harness.evaluation.tracking.predicted_path`` draws it)."""
     vx, vy, yaw_rate = x
     c, s = np.cos(pose[2]), np.sin(pose[2])
     return pose + dt * np.array([vx * c - vy * s, vx * s + vy * c, yaw_rate])

@@ -1,7 +1,7 @@
 """A least-squares lifted-linear model: EDMD with hand-picked observables, for the controller.
 
 Not a learner (those live in ``learners/``): a fixed polynomial lift and one least-squares
-solve give, in under a second, a :class:`~harness.interfaces.LiftedModel` good enough to close a
+solve give, in under a second, a :class:`~harness.core.contracts.LiftedModel` good enough to close a
 loop on the plant; the solve-time benchmark and the controller's tests drive DE-MPC with it.
 """
 
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harness.data.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, MinMaxNormalizer
 
 
 def polynomial_features(x_norm: np.ndarray) -> np.ndarray:

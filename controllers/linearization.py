@@ -1,13 +1,14 @@
 """Linearisations of models that are not lifted-linear, for the time-varying DE-MPC.
 
-A :class:`~harness.interfaces.BilinearModel` (z⁺ = A z + B v + Σⱼ (vⱼ − v0ⱼ) Hⱼ z) is linear in z
-for a fixed input and linear in v for a fixed state, so along a plan (z̄_k, v̄_k) it is exactly
+A :class:`~harness.core.contracts.BilinearModel` (z⁺ = A z + B v + Σⱼ (vⱼ − v0ⱼ) Hⱼ z) is
+linear in z for a fixed input and linear in v for a fixed state, so along a plan (z̄_k, v̄_k) it
+is exactly
 
     z⁺ = A_k z + B_k v + d_k + Σⱼ (vⱼ − v̄ⱼ) Hⱼ (z − z̄)     (second-order term dropped)
 
 with A_k = A + Σⱼ (v̄_kj − v0ⱼ) Hⱼ, B_k = B + [H₁ z̄_k … H_m z̄_k], d_k = −Σⱼ v̄_kj Hⱼ z̄_k.
 :class:`BilinearLinearization` wraps any such model as a
-:class:`~harness.interfaces.LinearizableModel`; every point of the horizon is done in one
+:class:`~harness.core.contracts.LinearizableModel`; every point of the horizon is done in one
 ``einsum`` (no loop over the horizon).
 """
 
@@ -15,12 +16,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import BilinearModel
+from harness.core.contracts import BilinearModel
+from harness.core.episode import MinMaxNormalizer
 
 
 class BilinearLinearization:
-    """A bilinear model read as a :class:`~harness.interfaces.LinearizableModel`."""
+    """A bilinear model read as a :class:`~harness.core.contracts.LinearizableModel`."""
 
     def __init__(self, model: BilinearModel) -> None:
         self.model = model

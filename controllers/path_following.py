@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
 
 STATES = 3
 ERRORS = 2  # lateral error (m), heading error (rad)

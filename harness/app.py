@@ -19,9 +19,14 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.config import register_configs, validate
-from harness.files import DirectoryInUseError, lock_directory, unlock_directory
-from harness.metrics import update_metrics, write_json_atomic
-from harness.paths import CONF_DIR
+from harness.core.files import (
+    DirectoryInUseError,
+    lock_directory,
+    unlock_directory,
+    write_json_atomic,
+)
+from harness.core.paths import CONF_DIR
+from harness.output import update_metrics
 from harness.report.jobs import job_dirname
 
 log = logging.getLogger(__name__)

@@ -9,6 +9,9 @@ ones (EDMD, Deep EDMD) also follow :class:`learners.base.KoopmanLearner` (``A_``
 ``conf/learner/*.yaml``; the bilinear ones (:mod:`learners.bilinear`,
 :mod:`learners.bilinear_deep_edmd`) let the input multiply the lifted state; input EDMD
 (:mod:`learners.input_edmd`) lifts the state and the input together and re-lifts every step.
+
+May import ``harness.core`` only (contracts, episodes, limits, files): a learner is usable
+without the simulator or the recorder.
 """
 
 from learners.base import KoopmanLearner, Learner, load

@@ -2,7 +2,7 @@
 
 Every learner models x_{k+1} = f(x_k, u_k) for x = (vx, vy, yaw_rate) [m/s, m/s, rad/s] and
 u = (steer_wheel_deg, pedal). Learners train in the min-max normalized coordinates of
-:class:`~harness.data.episode.MinMaxNormalizer` (fitted on the training episodes only) and speak
+:class:`~harness.core.episode.MinMaxNormalizer` (fitted on the training episodes only) and speak
 physical units at their interface.
 
 Koopman learners additionally expose a lifted linear model for the MPC::
@@ -30,9 +30,9 @@ from typing import Any, ClassVar, NamedTuple, Self
 import numpy as np
 import torch
 
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.files import write_atomic
-from harness.interfaces import INPUT_NAMES, STATE_NAMES
+from harness.core.contracts import INPUT_NAMES, STATE_NAMES
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.files import write_atomic
 
 __all__ = [
     "FORMAT",
@@ -156,7 +156,7 @@ class Learner(ABC):
     def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
         """Refuse, in one line naming the key, sizes whose fit on episodes of up to
         ``episode_frames`` frames cannot fit in this machine's memory (see
-        :mod:`harness.budget`); called before any data is collected. The default checks
+        :mod:`harness.core.budget`); called before any data is collected. The default checks
         nothing: a learner that can be configured too big overrides it."""
         del episode_frames, n, m
 

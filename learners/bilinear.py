@@ -30,8 +30,8 @@ stayed bounded for every dictionary size tried (20, 50, 100, 200 centres; vx 1.2
 rate 0.05-0.11 rad/s). The config's 100 centres and ridge 1e-4 come from that grid.
 
 The model is not lifted-linear: an MPC that reads only ``A_`` and ``B_`` (the harness's
-:class:`~harness.interfaces.LiftedModel`) would ignore ``H_``. It satisfies
-:class:`~harness.interfaces.BilinearModel` instead, which DE-MPC linearises along its plan
+:class:`~harness.core.contracts.LiftedModel`) would ignore ``H_``. It satisfies
+:class:`~harness.core.contracts.BilinearModel` instead, which DE-MPC linearises along its plan
 (``controllers/linearization.py``).
 """
 
@@ -43,7 +43,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
 from learners.base import INPUT_DIM, STATE_DIM, Shape, check_choice, check_rollout_args
 from learners.dictionaries import Dictionary
 from learners.edmd import EDMD

@@ -25,7 +25,7 @@ N x N, tiny beside the network).
 
 ``predict`` rolls the bilinear model out and reads it with the decoder or, by default here
 (``prediction_output: linear``), with C z, exactly what a bilinear MPC predicts with. The model
-satisfies :class:`~harness.interfaces.BilinearModel` (``A_``, ``B_``, ``H_``, ``v0_``, ``C_``,
+satisfies :class:`~harness.core.contracts.BilinearModel` (``A_``, ``B_``, ``H_``, ``v0_``, ``C_``,
 ``lift``, ``normalizer_``).
 """
 
@@ -39,7 +39,7 @@ from typing import Any, ClassVar, Self
 import numpy as np
 import torch
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
 from learners.base import Shape, check, check_choice, check_nonnegative, check_positive
 from learners.bilinear import (
     RIDGE_PRIORS,

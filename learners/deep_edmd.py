@@ -36,7 +36,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 import torch
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
 from learners.base import (
     Dim,
     KoopmanLearner,

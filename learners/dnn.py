@@ -12,7 +12,7 @@ back, and every predicted step is compared with the measured state. :func:`dnn_l
 definition in plain autograd; training uses :func:`dnn_step`, the same loss with a hand-written
 back-propagation through time (tests check they agree).
 
-Fitted, the DNN is a :class:`~harness.interfaces.LinearizableModel` in the normalized state
+Fitted, the DNN is a :class:`~harness.core.contracts.LinearizableModel` in the normalized state
 (z = x_norm, C_ = I, step = M or z + M): the time-varying DE-MPC linearises it along its plan,
 A_k = ∂step/∂z, B_k = ∂step/∂v at every point of the horizon at once (``controller=dnn_mpc``,
 or any DE-MPC config). A ReLU network is piecewise affine, so each linearisation is exact in
@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
 from learners.base import check_int, check_nonnegative
 from learners.nets import Dense, LayerSpec, NumpyMLP, mlp_apply, mlp_forward, mlp_specs
 from learners.trained import TrainedLearner

@@ -9,7 +9,7 @@ With y = [x_n; v] (normalized state and input) and the observables w(y) = [y; 1;
 Theta is EDMD's exact ridge least squares on the one-step pairs, projected on the state (the
 observables of the next input are not predicted: the next input is the controller's). The
 prediction lifts the predicted state again at every step, so the model is nonlinear in x and in
-u; DE-MPC linearises it along its plan (:class:`~harness.interfaces.LinearizableModel`: lift is
+u; DE-MPC linearises it along its plan (:class:`~harness.core.contracts.LinearizableModel`: lift is
 the normalization, C = I, the Jacobians are the dictionary's, by hand).
 
 Why the input inside the observables: the lateral force of a tyre saturates in its slip angle,
@@ -39,8 +39,8 @@ from typing import Any, ClassVar, Self
 import numpy as np
 import torch
 
-from harness.budget import check_memory
-from harness.data.episode import Episode, MinMaxNormalizer
+from harness.core.budget import check_memory
+from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
     STATE_DIM,

@@ -29,7 +29,7 @@ The mass cancels: it only converts the fitted per-mass values into N/rad and kgÂ
 
 Besides a :class:`~learners.base.Learner` (``fit``/``predict``, so it has rows in the
 prediction and step-response tables), the model is a
-:class:`~harness.interfaces.LinearizableModel` in the normalized state (z = x_norm, C = I):
+:class:`~harness.core.contracts.LinearizableModel` in the normalized state (z = x_norm, C = I):
 the time-varying DE-MPC linearises it along its plan (``controller=bicycle_mpc``).
 """
 
@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from scipy.optimize import minimize_scalar
 
-from harness.data.episode import Episode, MinMaxNormalizer, pedal_scale
+from harness.core.episode import Episode, MinMaxNormalizer, pedal_scale
 from learners.base import Learner, Shape, check_fit_data, check_positive, check_rollout_args
 
 __all__ = ["NAMES", "SingleTrack"]

@@ -10,8 +10,8 @@ from typing import Any, Self
 import numpy as np
 import torch
 
-from harness.budget import check_memory
-from harness.data.episode import Episode, MinMaxNormalizer
+from harness.core.budget import check_memory
+from harness.core.episode import Episode, MinMaxNormalizer
 from learners import training as loop
 from learners.base import (
     INPUT_DIM,

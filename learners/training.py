@@ -19,7 +19,7 @@ What the loop guarantees:
   best one seen (the last one when there is no validation data).
 
 The loss curves (:class:`History`) are returned, not drawn: figures and recordings are the
-caller's (``harness/training_report.py``).
+caller's (``harness/evaluation/training_report.py``).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from harness.files import write_atomic
+from harness.core.files import write_atomic
 from learners.base import check, check_int, check_nonnegative, check_positive
 from learners.nets import FlatParameters
 from learners.windows import WindowData

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from harness.data.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, MinMaxNormalizer
 
 __all__ = ["WindowData"]
 

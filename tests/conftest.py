@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from harness.config import register_configs
-from harness.paths import REPO_ROOT
+from harness.core.paths import REPO_ROOT
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
 from harness.recorder import Recorder

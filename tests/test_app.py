@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.files import DirectoryInUseError, lock_directory, try_lock, unlock_directory
+from harness.core.files import DirectoryInUseError, lock_directory, try_lock, unlock_directory
 
 CHARACTERIZE_KEYS = {
     "understeer_gradient_deg_per_g",
@@ -137,7 +137,7 @@ def test_a_killed_run_leaves_its_directory_free(tmp_path: Path) -> None:
         [
             sys.executable,
             "-c",
-            "import time; from harness.files import lock_directory; "
+            "import time; from harness.core.files import lock_directory; "
             f"lock_directory({str(run_dir)!r}, 'hydra.run.dir'); print('held', flush=True); "
             "time.sleep(60)",
         ],

@@ -13,7 +13,7 @@ import numpy as np
 from hydra.utils import instantiate
 
 from controllers import BicycleMPCConfig
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
 from tests.test_config import compose_config
 from tests.test_single_track import drives, known_model
 

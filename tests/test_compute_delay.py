@@ -21,13 +21,13 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from controllers import DEMPCConfig, check_controller_config
-from harness.interfaces import LiftedModel
-from harness.paths import CONF_DIR
+from harness.core.contracts import LiftedModel
+from harness.core.paths import CONF_DIR
+from harness.evaluation.tracking import TrackingTrajectory, track
+from harness.plant.rollout import closed_loop
 from harness.recorder import Recorder
 from harness.references import DoubleLaneChange, ReferencePath
 from harness.references.course import path_metrics
-from harness.rollout import closed_loop
-from harness.tracking import TrackingTrajectory, track
 from tests.test_rollout import Counting, Integrator
 from tests.toy_models import ModelPlant, feasible_reference, toy_bilinear_model, toy_linear_model
 

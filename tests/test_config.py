@@ -20,9 +20,9 @@ from omegaconf import OmegaConf
 
 from controllers import DEMPCConfig
 from harness.config import validate
+from harness.core.contracts import Plant
+from harness.core.paths import CONF_DIR
 from harness.data.store import DataConfig
-from harness.interfaces import Plant
-from harness.paths import CONF_DIR
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
 from harness.references import Reference
@@ -200,7 +200,7 @@ def test_the_config_list_covers_every_group() -> None:
     }
 
 
-# What each group's option builds: the contracts of harness/interfaces.py where there is one.
+# What each group's option builds: the contracts of harness/core/contracts.py where there is one.
 BUILDS: dict[str, type | tuple[type, ...]] = {
     "plant": Plant,
     "data": DataConfig,

@@ -24,7 +24,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from harness.app import composition_error
 from harness.config import validate
-from harness.paths import CONF_DIR
+from harness.core.paths import CONF_DIR
 from harness.plant import Sedan
 from harness.plant.sedan import PlantUnstableError
 

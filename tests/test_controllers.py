@@ -25,15 +25,15 @@ from controllers import (
 from controllers.condensed_qp import PATHS, QP_SOLVERS
 from controllers.de_mpc import MAX_HORIZON_S
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
-from harness.data import Episode
+from harness.core.contracts import Controller, LiftedModel, Plant, StepInfo
+from harness.core.episode import Episode
+from harness.core.paths import CONF_DIR
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
-from harness.interfaces import Controller, LiftedModel, Plant, StepInfo
-from harness.paths import CONF_DIR
+from harness.evaluation.tracking import track
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import from_episode
-from harness.tracking import track
 from tests.qp_truth import PIQP_KKT_TOL, assert_optimal, solution_kkt
 from tests.toy_models import ModelPlant, feasible_reference
 from tests.toy_models import toy_linear_model as linear_model

@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.core.contracts import Plant
+from harness.core.episode import Episode, MinMaxNormalizer
 from harness.data.collect import reference_speeds
 from harness.data.coverage import sawtooth_frames, steering_reversals
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
-from harness.data.episode import Episode, MinMaxNormalizer
 from harness.data.store import (
     DataConfig,
     Dataset,
@@ -25,11 +26,10 @@ from harness.data.store import (
     drive_episode,
     load,
 )
-from harness.interfaces import Plant
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
+from harness.plant.rollout import simulate
 from harness.references import Reference
-from harness.rollout import simulate
 
 DRY = DriverKnowledge.of(SedanParams())  # what the driver of the default sedan knows
 

@@ -14,11 +14,11 @@ from torch.func import jacrev, vmap
 
 from controllers import DEMPC, DEMPCConfig
 from controllers.condensed_qp import TimeVaryingQP
-from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import LinearizableModel
+from harness.core.contracts import LinearizableModel
+from harness.core.episode import MinMaxNormalizer
+from harness.evaluation.tracking import track
 from harness.recorder import Recorder
 from harness.tasks.pipeline import _not_lifted_linear
-from harness.tracking import track
 from learners import DNN
 from learners.base import load as load_learner
 from learners.nets import Dense, NumpyMLP, mlp_apply

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.files import umask, write_json_atomic, write_text_atomic
+from harness.core.files import umask, write_json_atomic, write_text_atomic
 
 
 def modes_under(root: Path) -> dict[str, int]:

@@ -1,12 +1,17 @@
-"""The import graph of our packages has no circle: every module can be read (and imported) after
-the modules it uses, so a newcomer can read the tree bottom-up."""
+"""The import graph of our packages has no circle and follows the layers: every module can be read
+(and imported) after the modules it uses, a newcomer can read the tree bottom-up, and a learner or
+a controller is usable without the simulator."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
-from harness.paths import REPO_ROOT
+import pytest
+
+from harness.core.paths import REPO_ROOT
 
 PACKAGES = ("harness", "learners", "controllers")
 
@@ -107,3 +112,125 @@ def test_a_circle_through_a_function_level_import_is_found(tmp_path: Path) -> No
     graph = import_graph(tmp_path)
     assert find_cycle(graph) == ["harness.a", "harness.b", "harness.a"]
     assert graph["harness.c"] == set()
+
+
+# The layers: each unit (a top-level package, or a package or module of ``harness``) and the units
+# it may import. Written once, here; each package's ``__init__`` docstring says the same.
+ALLOWED: dict[str, set[str]] = {
+    "harness.core": set(),
+    "learners": {"harness.core"},
+    "controllers": {"harness.core", "learners"},
+    "harness.plant": {"harness.core"},
+    "harness.output": {"harness.core"},
+    "harness.recorder": set(),
+    "harness.references": {"harness.core", "harness.output", "harness.recorder"},
+    "harness.data": {
+        "harness.core",
+        "harness.plant",
+        "harness.output",
+        "harness.recorder",
+        "harness.references",
+    },
+    "harness.evaluation": {
+        "harness.core",
+        "harness.plant",
+        "harness.output",
+        "harness.recorder",
+        "harness.references",
+        "learners",
+    },
+    "harness.config": {"harness.core", "harness.plant", "harness.data"},
+    "harness.tasks": {
+        "harness.core",
+        "harness.plant",
+        "harness.output",
+        "harness.recorder",
+        "harness.references",
+        "harness.data",
+        "harness.evaluation",
+        "harness.config",
+        "learners",
+        "controllers",
+    },
+    "harness.report": {
+        "harness.core",
+        "harness.output",
+        "harness.references",
+        "harness.evaluation",
+    },
+    "harness.app": {"harness.core", "harness.output", "harness.config", "harness.report"},
+    "harness.__main__": {"harness.app"},
+    "harness": set(),
+}
+
+
+def unit(module: str) -> str:
+    """The layer unit a module belongs to: ``learners.edmd`` -> ``learners``,
+    ``harness.core.files`` -> ``harness.core``, ``harness.app`` -> ``harness.app``."""
+    parts = module.split(".")
+    return ".".join(parts[:2]) if parts[0] == "harness" else parts[0]
+
+
+def arrows(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The graph between units, each unit's imports of itself left out."""
+    found: dict[str, set[str]] = {}
+    for module, imports in graph.items():
+        found.setdefault(unit(module), set()).update(unit(m) for m in imports)
+    return {name: targets - {name} for name, targets in found.items()}
+
+
+def test_every_import_follows_an_allowed_arrow() -> None:
+    graph = import_graph()
+    units = arrows(graph)
+    assert set(units) == set(ALLOWED), "a unit was added or removed: list it in ALLOWED"
+    against = {
+        f"{module} imports {target}"
+        for module, imports in graph.items()
+        for target in imports
+        if unit(target) != unit(module) and unit(target) not in ALLOWED[unit(module)]
+    }
+    assert against == set()
+
+
+def test_the_allowed_arrows_form_layers() -> None:
+    """No circle between units, and the core imports nothing of the project."""
+    assert find_cycle(ALLOWED) is None
+    assert ALLOWED["harness.core"] == set()
+
+
+def test_an_arrow_against_the_layers_is_caught(tmp_path: Path) -> None:
+    """A learner that imports the plant is what the layer test exists to refuse."""
+    for package in ("harness", "harness/core", "harness/plant", "learners", "controllers"):
+        (tmp_path / package).mkdir()
+        (tmp_path / package / "__init__.py").write_text("")
+    (tmp_path / "harness/plant/sedan.py").write_text("import numpy\n")
+    (tmp_path / "learners/edmd.py").write_text("from harness.plant.sedan import numpy\n")
+    graph = import_graph(tmp_path)
+    wrong = [
+        (m, t) for m, ts in graph.items() for t in ts if unit(t) not in ALLOWED[unit(m)] | {unit(m)}
+    ]
+    assert wrong == [("learners.edmd", "harness.plant.sedan")]
+
+
+@pytest.mark.parametrize(
+    "package", ["learners", "controllers", "harness.plant", "harness.report", "harness.tasks"]
+)
+def test_each_package_says_what_it_may_import(package: str) -> None:
+    import importlib
+
+    docstring = importlib.import_module(package).__doc__ or ""
+    assert "May import" in docstring or "may import" in docstring
+    for target in ALLOWED[package]:
+        assert f"``{target}``" in docstring, f"{package}'s docstring does not name {target}"
+
+
+def test_learners_and_controllers_load_neither_the_simulator_nor_the_recorder() -> None:
+    """In a fresh interpreter: the layers hold at run time, not only in the source."""
+    code = (
+        "import sys, learners, controllers\n"
+        "print(sorted(m for m in ('mujoco', 'rerun', 'matplotlib') if m in sys.modules))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert result.stdout.strip() == "[]"

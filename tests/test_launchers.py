@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from harness.paths import CONF_DIR
+from harness.core.paths import CONF_DIR
 from tests.test_pipeline import TINY
 
 # Every job log line names the process that wrote it.

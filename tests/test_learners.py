@@ -14,9 +14,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import learners
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.paths import CONF_DIR
-from harness.prediction import open_loop, rmse
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.paths import CONF_DIR
+from harness.evaluation.prediction import open_loop, rmse
 from learners import (
     DNN,
     EDMD,

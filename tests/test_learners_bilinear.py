@@ -13,10 +13,10 @@ from hydra.utils import instantiate
 import learners
 from controllers import DEMPC, TimeVaryingQP
 from controllers.linearization import BilinearLinearization
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.interfaces import BilinearModel, LiftedModel
-from harness.paths import CONF_DIR
-from harness.prediction import open_loop, rmse
+from harness.core.contracts import BilinearModel, LiftedModel
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.paths import CONF_DIR
+from harness.evaluation.prediction import open_loop, rmse
 from harness.tasks.pipeline import _not_lifted_linear
 from learners import EDMD, ThinPlateRBF
 from learners.bilinear import BilinearEDMD, bilinear_rollout

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.data.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, MinMaxNormalizer
 from learners import EDMD, DeepEDMD, RandomFeatures, ThinPlateRBF
 from learners.dictionaries import ACTIVATIONS
 from learners.linalg import ridge_lstsq

@@ -8,9 +8,9 @@ import pytest
 from hydra.utils import instantiate
 
 from controllers import DEMPC, DEMPCConfig, TimeVaryingQP
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.interfaces import LiftedModel, LinearizableModel
-from harness.prediction import open_loop, rmse
+from harness.core.contracts import LiftedModel, LinearizableModel
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.evaluation.prediction import open_loop, rmse
 from learners import RandomFeatures, ThinPlateRBF
 from learners.bilinear import BilinearEDMD
 from learners.edmd import EDMD

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from harness import training_report
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
+from harness.evaluation import training_report
 from harness.recorder import Recorder
 from learners import DNN, DeepEDMD
 from learners.base import check_same_learner
@@ -289,7 +289,7 @@ def test_fit_returns_the_best_validated_model_and_writes_nothing(
 def test_a_run_fits_in_its_directory_and_keeps_the_loss_curves(
     cls, data: dict, tmp_path: Path
 ) -> None:
-    """harness.training_report.fit: checkpoint, training_history.json, recording and figure."""
+    """training_report.fit: checkpoint, training_history.json, recording and figure."""
     logged = {}
 
     class Capture(Recorder):
@@ -399,7 +399,7 @@ def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(
     """bilinear_training false: the same training as Deep EDMD (same network bit for bit), then
     [A B H] solving the normal equations of the bilinear regression on the lifted data; saved
     and loaded whole."""
-    from harness.interfaces import BilinearModel
+    from harness.core.contracts import BilinearModel
     from learners.bilinear import bilinear_regression_rows
     from learners.bilinear_deep_edmd import BilinearDeepEDMD
 

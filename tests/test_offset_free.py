@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from controllers import DEMPCConfig
-from harness.interfaces import LiftedModel
+from harness.core.contracts import LiftedModel
 from tests.toy_models import ModelPlant, toy_bilinear_model, toy_linear_model
 
 OFFSET = np.array([15.0, 0.02])  # steering wheel (deg), throttle

@@ -14,7 +14,7 @@ import pytest
 from controllers import BicycleMPCConfig, DEMPCConfig
 from controllers.condensed_qp import time_invariant_theta
 from controllers.path_following import FrenetOutputs
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
 from harness.references import DoubleLaneChange, ReferencePath
 from tests.test_single_track import drives, known_model
 from tests.toy_models import toy_linear_model

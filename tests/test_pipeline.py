@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.artifacts import load_arrays
-from harness.data.episode import Episode
+from harness.core.episode import Episode
+from harness.output import load_arrays
 
 TINY = [
     "data.episodes=3",

@@ -7,7 +7,7 @@ import pytest
 
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
-from harness.rollout import SpeedHold, simulate
+from harness.plant.rollout import SpeedHold, simulate
 
 G = 9.81
 

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.prediction import by_episode, evaluate, robustness, windowed
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.evaluation.prediction import by_episode, evaluate, robustness, windowed
 from harness.recorder import Recorder
 from learners import DNN, EDMD, Learner, ThinPlateRBF
 from tests.toydata import drive_episodes

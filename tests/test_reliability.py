@@ -27,9 +27,9 @@ from hydra.utils import instantiate
 import learners
 from controllers import DEMPCConfig
 from harness.config import validate
-from harness.data.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.paths import CONF_DIR
 from harness.data.store import DataConfig, Dataset
-from harness.paths import CONF_DIR
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
 from harness.plant.sedan import PlantUnstableError
@@ -372,7 +372,7 @@ def _reuse(
     dataset = Dataset(out, {"key": "d0"}, episodes[:1], [], episodes[1:], normalizer)
     pipeline = _pipeline(EDMD(ThinPlateRBF(10)), "edmd", path)
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="harness.provenance"):
+    with caplog.at_level(logging.WARNING, logger="harness.tasks.provenance"):
         _, training = pipeline._learner(dataset, THIS_RUN, Recorder(), out)
     return training
 

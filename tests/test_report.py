@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.files import try_lock
+from harness.core.files import try_lock
 from harness.report import Run, main, read_runs, report
 from harness.report.figures import loss_figure
 from harness.report.tables import course_speed_table, course_table, generalization_table

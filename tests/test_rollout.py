@@ -7,8 +7,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from harness.interfaces import Plant, StepInfo
-from harness.rollout import NO_INFO, closed_loop, simulate
+from harness.core.contracts import Plant, StepInfo
+from harness.plant.rollout import NO_INFO, closed_loop, simulate
 
 
 class Integrator:

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.interfaces import LinearizableModel
+from harness.core.contracts import LinearizableModel
+from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import load
 from learners.single_track import NAMES, SingleTrack
 

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import BilinearModel, LiftedModel
-from harness.spectrum import plot_spectrum, spectrum, state_matrices
+from harness.core.contracts import BilinearModel, LiftedModel
+from harness.core.episode import MinMaxNormalizer
+from harness.evaluation.spectrum import plot_spectrum, spectrum, state_matrices
 
 NORMALIZER = MinMaxNormalizer(
     np.array([0.0, -2.0, -1.0]),

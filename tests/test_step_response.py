@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness import step_response
-from harness.artifacts import load_arrays
+from harness.evaluation import step_response
+from harness.evaluation.step_response import DEFAULT_CASES, StepCase, respond
+from harness.output import load_arrays
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.report.jobs import Run
 from harness.report.tables import prediction_table, spectrum_table, step_response_table
-from harness.step_response import DEFAULT_CASES, StepCase, respond
 
 CASES = (
     StepCase(10.0, "steer_wheel_deg", 20.0, "yaw_rate"),

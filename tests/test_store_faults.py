@@ -22,10 +22,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from harness.config import validate
+from harness.core.paths import CONF_DIR
 from harness.data import store
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, DatasetError, collect, collect_counted, load
-from harness.paths import CONF_DIR
 from harness.plant import Sedan, SedanParams
 
 DRY = DriverKnowledge.of(SedanParams())

@@ -14,9 +14,9 @@ from controllers import DEMPC, DEMPCConfig
 from controllers.condensed_qp import CondensedQP, TimeVaryingQP
 from controllers.lifted_linear import LiftedLinearModel
 from controllers.linearization import BilinearLinearization
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
+from harness.evaluation.tracking import track
 from harness.recorder import Recorder
-from harness.tracking import track
 from tests.qp_truth import PIQP_KKT_TOL, assert_optimal, solution_kkt
 from tests.toy_models import (
     ModelPlant,

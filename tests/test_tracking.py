@@ -9,8 +9,9 @@ import pytest
 from matplotlib.figure import Figure
 
 from controllers import DEMPC, DEMPCConfig
-from harness import tracking
-from harness.data import Episode
+from harness.core.episode import Episode
+from harness.evaluation import tracking
+from harness.evaluation.tracking import TrackingTrajectory, predicted_path, track
 from harness.recorder import Recorder, RerunRecorder
 from harness.references import (
     BicycleParams,
@@ -20,7 +21,6 @@ from harness.references import (
     lane_offset_m,
 )
 from harness.references.iso3888 import MIN_SPEED_MPS
-from harness.tracking import TrackingTrajectory, predicted_path, track
 from tests.toy_models import ModelPlant, feasible_reference
 from tests.toy_models import toy_linear_model as linear_model
 

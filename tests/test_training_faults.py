@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
 from learners import DNN, DeepEDMD
 from learners.trained import TrainedLearner
 from learners.training import _read_checkpoint

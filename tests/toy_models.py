@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from controllers.lifted_linear import LiftedLinearModel
-from harness.data.episode import MinMaxNormalizer
-from harness.interfaces import STATE_NAMES, BilinearModel, LiftedModel
+from harness.core.contracts import STATE_NAMES, BilinearModel, LiftedModel
+from harness.core.episode import MinMaxNormalizer
 
 
 def constant_feature(x_norm: np.ndarray) -> np.ndarray:
@@ -93,7 +93,7 @@ def feasible_reference(model: LiftedModel, steps: int = 600) -> np.ndarray:
 
 
 class ModelPlant:
-    """A :class:`~harness.interfaces.Plant` whose dynamics are a lifted-linear model.
+    """A :class:`~harness.core.contracts.Plant` whose dynamics are a lifted-linear model.
 
     Only consistent when the lift is closed under the dynamics (e.g. ``constant_feature``): the
     state is x = normalizer⁻¹(C z) and the next z is A z + B v.

@@ -11,10 +11,10 @@ import functools
 
 import numpy as np
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
+from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
 from harness.plant import Sedan
-from harness.plant.sedan import BRAKE_MAX_MPA, THROTTLE_MAX
-from harness.rollout import simulate
+from harness.plant.rollout import simulate
 
 
 class RandomDriver:

@@ -1,5 +1,4 @@
-"""Driving data: episodes, the synthetic driver, the dataset store with its splits."""
+"""Driving data: the synthetic driver, collection on the plant, the dataset store with its splits
+and coverage. The episode and its normalizer are core types (``harness.core.episode``).
 
-from harness.data.episode import Episode, MinMaxNormalizer, pedal_scale, pedal_unscale
-
-__all__ = ["Episode", "MinMaxNormalizer", "pedal_scale", "pedal_unscale"]
+May import ``harness.core``, ``harness.plant``, ``harness.output`` and ``harness.recorder``."""

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.data.episode import Episode, pedal_scale
-from harness.figures import save_figure
+from harness.core.episode import Episode, pedal_scale
+from harness.output import save_figure
 
 G = 9.81
 # A steering reversal: the steering rate changes sign, counting only rates beyond this dead band

@@ -27,8 +27,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 from harness.plant.params import SedanParams
-from harness.plant.sedan import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 
 G = 9.81
 LATERAL_MANOEUVRES = ("straight", "hold", "ramp", "slalom", "lane_change", "corner")

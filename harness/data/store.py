@@ -14,7 +14,7 @@ The key is a hash of everything that determines the data: the plant's fingerprin
 sedan its parameters, the sources of its tyre callback and MJCF, the MuJoCo version), the data
 config (episodes, lengths, driver, seed), what the driver knows of the car and the driver's
 source. The same configuration reuses the stored dataset; any change gives a new key. The store
-knows plants only through :class:`harness.interfaces.Plant`; worker processes get the plant by
+knows plants only through :class:`harness.core.contracts.Plant`; worker processes get the plant by
 pickling (a ``Sedan`` pickles as its parameters and is rebuilt there).
 
 What the store guarantees (``tests/test_store_faults.py`` injects each fault):
@@ -66,12 +66,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from harness.core.contracts import Plant
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.files import write_atomic, write_text_atomic
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.files import write_atomic, write_text_atomic
-from harness.interfaces import Plant
 from harness.plant.native import cache_dir
-from harness.rollout import NO_INFO, closed_loop
+from harness.plant.rollout import NO_INFO, closed_loop
 
 FORMAT_VERSION = 1
 SPLITS = ("train", "validation", "test")

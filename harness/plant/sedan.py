@@ -20,16 +20,14 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from harness.paths import MJCF_DIR
+from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
+from harness.core.paths import MJCF_DIR
 from harness.plant import native
 from harness.plant.params import SedanParams
 
 log = logging.getLogger(__name__)
 
 MJCF_PATH: Path = MJCF_DIR / "sedan.xml"
-STEER_WHEEL_LIMIT_DEG = 450.0
-THROTTLE_MAX = 0.2
-BRAKE_MAX_MPA = 9.1
 CORNERS = ("fl", "fr", "rl", "rr")
 # MuJoCo's instability warnings: a NaN, inf or huge position, velocity or acceleration. MuJoCo
 # then resets the simulation to the model's initial state and carries on (its "autoreset"), so
@@ -177,7 +175,7 @@ def _source_digests() -> dict[str, str]:
 class Sedan:
     """A C-class sedan on a flat road; steps at ``dt`` = 10 ms with 1 ms physics substeps.
 
-    Implements :class:`harness.interfaces.Plant`. ``Sedan()`` is the dry default,
+    Implements :class:`harness.core.contracts.Plant`. ``Sedan()`` is the dry default,
     ``Sedan(params)`` any variant; Hydra builds it from ``conf/plant/*.yaml`` as
     ``Sedan(**fields)`` with ``SedanParams``' fields (sub-blocks already their dataclasses).
     """

@@ -4,6 +4,8 @@ A reference is built once the plant and the test drives are known, as (T, 3) phy
 (vx, vy, yaw_rate), SI, one row per control step. The pipeline tracks every reference under
 ``task.references.<name>`` (``conf/task/pipeline.yaml``); adding one is a class with the two
 members of :class:`Reference` plus a YAML file naming it with ``_target_``.
+
+May import ``harness.core``, ``harness.output`` and ``harness.recorder``.
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
+from harness.core.reference_path import FrenetState, ReferencePath
 from harness.references.course import Course, Lane, path_metrics, plot_course
 from harness.references.episode import HeldOutEpisode, from_episode
 from harness.references.iso3888 import (
@@ -24,7 +27,6 @@ from harness.references.iso3888 import (
     double_lane_change_path,
     lane_offset_m,
 )
-from harness.references.path import FrenetState, ReferencePath
 
 
 @runtime_checkable

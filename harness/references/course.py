@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.figures import save_figure
+from harness.core.reference_path import ReferencePath
+from harness.output import save_figure
 from harness.recorder import Recorder
-from harness.references.path import ReferencePath
 
 
 @dataclass(frozen=True)

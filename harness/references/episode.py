@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
 
 
 def from_episode(episode: Episode) -> np.ndarray:

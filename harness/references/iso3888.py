@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.data.episode import Episode
+from harness.core.episode import Episode
 from harness.references.course import Course, Lane, cones_hit
 
 # The slowest lane change (m/s). Below about 1 m/s the tyres are in their slip-limited low-speed

@@ -14,6 +14,9 @@ The report owns ``SWEEP_DIR/report/``: each run builds it anew beside it and swa
 file of an earlier report outlives it (a table that is empty now, a figure of a job since
 gone), and a report killed while it writes leaves the previous one in place. Half-written
 files killed jobs left (``.NAME.XXXX.tmp``) are removed from every job directory no run holds.
+
+May import ``harness.core``, ``harness.output``, ``harness.references`` and
+``harness.evaluation`` (to redraw the runs' arrays).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from harness.files import remove_stale_temporaries, try_lock, umask, write_text_atomic
+from harness.core.files import remove_stale_temporaries, try_lock, umask, write_text_atomic
 from harness.report.figures import figures
 from harness.report.jobs import HYDRA_FILE, Run, read_runs
 from harness.report.tables import Table, tables

@@ -25,13 +25,12 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.artifacts import load_arrays
-from harness.data.episode import Episode
-from harness.figures import save_figure
-from harness.prediction import plot_prediction
+from harness.core.episode import Episode
+from harness.evaluation.prediction import plot_prediction
+from harness.evaluation.tracking import load_run, plot_tracking
+from harness.output import load_arrays, save_figure
 from harness.references.course import Course, plot_course
 from harness.report.jobs import Run, common_overrides, variant
-from harness.tracking import load_run, plot_tracking
 
 log = logging.getLogger(__name__)
 

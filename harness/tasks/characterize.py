@@ -32,10 +32,10 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.figures import save_figure
+from harness.output import save_figure
 from harness.plant import Sedan
+from harness.plant.rollout import SpeedHold, Trajectory, simulate
 from harness.recorder import Recorder
-from harness.rollout import SpeedHold, Trajectory, simulate
 
 G = 9.81
 KPH_100 = 100 / 3.6

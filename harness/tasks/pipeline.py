@@ -5,15 +5,16 @@ Sections written to ``metrics.json``:
 - ``data``: the dataset used (see ``harness/data/collect.py``);
 - ``training``: the learner, its fit time and where the model file is; ``training.provenance``
   what the model was trained on against this run (a ``task.model_path`` of another plant,
-  dataset or normalizer is named in a warning; see ``harness/provenance.py``);
+  dataset or normalizer is named in a warning; see ``harness/tasks/provenance.py``);
 - ``prediction``: per test episode, RMSE of the open-loop prediction over the whole episode
-  and over re-initialised windows (see ``harness/prediction.py``);
+  and over re-initialised windows (see ``harness/evaluation/prediction.py``);
 - ``robustness`` (learners trained with ``random_layer.enabled``): per test episode the RMSE's
   mean, std, min and max over ``robustness_repeats`` predictions;
 - ``prediction.step_response``: steering and throttle steps from straight driving, the model
-  against the plant at 0.3 s and 1.5 s (see ``harness/step_response.py``);
+  against the plant at 0.3 s and 1.5 s (see ``harness/evaluation/step_response.py``);
 - ``spectrum``: the eigenvalues of a Koopman model's state matrices and the modes outside the
-  unit circle, named (see ``harness/spectrum.py``); a bilinear model is not tracked (below);
+  unit circle, named (see ``harness/evaluation/spectrum.py``); a bilinear model is not tracked
+  (below);
 - ``tracking``: DE-MPC on the plant (lifted-linear, bilinear and linearizable learners; the
   others report ``tracking.skipped``). The top-level keys
   (``rmse``, ``solve_time_ms``, ``deadline_misses``, ``solver_failures``) are the paper's
@@ -41,20 +42,21 @@ from typing import Any
 import numpy as np
 
 from controllers.config import ControllerFactory, OwnModelFactory
-from harness import provenance, spectrum, step_response, training_report
-from harness.artifacts import save_arrays
 from harness.config import as_object
+from harness.core.contracts import LiftedModel, LinearizableModel
+from harness.core.episode import Episode
 from harness.data.collect import prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
-from harness.data.episode import Episode
 from harness.data.store import DataConfig, Dataset, drive_again
-from harness.interfaces import LiftedModel, LinearizableModel
+from harness.evaluation import spectrum, step_response, training_report
+from harness.evaluation.prediction import evaluate, robustness
+from harness.evaluation.tracking import track
+from harness.output import save_arrays
 from harness.plant import Sedan
-from harness.prediction import evaluate, robustness
 from harness.recorder import Recorder
 from harness.references import CourseReference, Reference
 from harness.references.course import path_metrics, plot_course, record_course
-from harness.tracking import track
+from harness.tasks import provenance
 from learners.base import Learner, check_same_learner
 from learners.base import load as load_learner
 
@@ -320,7 +322,8 @@ class Pipeline:
         self, learner: Learner, plant: Sedan, recorder: Recorder, output_dir: Path
     ) -> dict[str, Any]:
         """``prediction.step_response.<case>``: steering and throttle steps from straight
-        driving, the model's open-loop prediction against the plant's (harness/step_response.py)."""
+        driving, the model's open-loop prediction against the plant's
+        (harness/evaluation/step_response.py)."""
         results = step_response.evaluate(
             {self.learner_name: learner}, plant, recorder=recorder, output_dir=output_dir
         )
@@ -330,7 +333,7 @@ class Pipeline:
         self, learner: Learner, dt: float, recorder: Recorder, output_dir: Path
     ) -> dict[str, Any]:
         """``spectrum``: the eigenvalues of a Koopman model's state matrices, unstable modes
-        named (harness/spectrum.py), and ``spectrum.png``."""
+        named (harness/evaluation/spectrum.py), and ``spectrum.png``."""
         if not isinstance(learner, LiftedModel):
             return {"skipped": f"{self.learner_name} is not a lifted model"}
         metrics, eigenvalues = spectrum.spectrum(learner, dt)
@@ -394,8 +397,8 @@ def check_training_data(dataset: Dataset) -> None:
 
 def _not_lifted_linear(learner: Learner) -> str | None:
     """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
-    :class:`~harness.interfaces.LiftedModel` (a bilinear one is linearised along its plan) or
-    a :class:`~harness.interfaces.LinearizableModel`."""
+    :class:`~harness.core.contracts.LiftedModel` (a bilinear one is linearised along its plan) or
+    a :class:`~harness.core.contracts.LinearizableModel`."""
     if not isinstance(learner, LiftedModel | LinearizableModel):
         return "is not a lifted-linear model (nor bilinear, nor linearizable)"
     return None

@@ -14,8 +14,8 @@
 - ``compute_delay``: the clock in the loop (``controller.compute_delay``): ``none``, each input
   applied at the instant of its measurement, or ``one_step``, one control period later.
 
-The controller is seen only through :class:`~harness.interfaces.Controller`: every number above
-comes from timing ``act`` and reading the :class:`~harness.interfaces.StepInfo` it returns.
+The controller is seen only through :class:`~harness.core.contracts.Controller`: every number above
+comes from timing ``act`` and reading the :class:`~harness.core.contracts.StepInfo` it returns.
 
 Everything is recorded: the rollout (states, inputs, pose) under ``name``, each state's plot
 drawing the reference, the actual state and the model's prediction ``Np`` steps ahead at the
@@ -38,9 +38,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.artifacts import load_arrays, save_arrays
-from harness.figures import save_figure
-from harness.interfaces import (
+from harness.core.contracts import (
     COMPUTE_DELAYS,
     INPUT_NAMES,
     STATE_NAMES,
@@ -48,9 +46,10 @@ from harness.interfaces import (
     Plant,
     StepInfo,
 )
+from harness.core.reference_path import ReferencePath
+from harness.output import load_arrays, save_arrays, save_figure
+from harness.plant.rollout import Trajectory, closed_loop
 from harness.recorder import Recorder
-from harness.references.path import ReferencePath
-from harness.rollout import Trajectory, closed_loop
 
 FINAL_ERROR_S = 0.5  # the end of a run over which ``final_error`` averages (s)
 

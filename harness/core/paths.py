@@ -2,6 +2,6 @@
 
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parents[2]  # harness/core/paths.py -> the repository
 CONF_DIR = REPO_ROOT / "conf"
 MJCF_DIR = REPO_ROOT / "models" / "mjcf"

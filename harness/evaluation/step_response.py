@@ -1,12 +1,12 @@
 """Local response checks: steering and throttle steps from straight driving, model against plant.
 
-What a vehicle engineer looks at first. The whole-drive RMSE of :mod:`harness.prediction` mixes
-every regime of a drive; a step from straight driving isolates one thing: does the model's
-input gain, and its change with speed, match the car's? (A lifted-linear model has one input
-matrix for every speed, while the car's steering gain falls with speed.)
+What a vehicle engineer looks at first. The whole-drive RMSE of :mod:`harness.evaluation.prediction`
+mixes every regime of a drive; a step from straight driving isolates one thing: does the model's
+input gain, and its change with speed, match the car's? (A lifted-linear model has one input matrix
+for every speed, while the car's steering gain falls with speed.)
 
 Every :class:`StepCase` drives the plant straight at ``speed_mps``: reset rolling
-(``plant.reset(speed_mps=...)``), then :class:`~harness.rollout.SpeedHold` for ``settle_s`` to
+(``plant.reset(speed_mps=...)``), then :class:`~harness.plant.rollout.SpeedHold` for ``settle_s`` to
 find the pedal that holds the speed. At t0 that pedal is frozen and the step is applied (the
 steering wheel to ``step`` degrees, or the pedal raised by ``step``); from the state at t0 the
 model predicts the response open loop under exactly the inputs the plant got. Compared at
@@ -28,11 +28,10 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.artifacts import save_arrays
-from harness.figures import save_figure
-from harness.interfaces import INPUT_NAMES, STATE_NAMES, Plant
+from harness.core.contracts import INPUT_NAMES, STATE_NAMES, Plant
+from harness.output import save_arrays, save_figure
+from harness.plant.rollout import SpeedHold
 from harness.recorder import Recorder
-from harness.rollout import SpeedHold
 from learners.base import Learner
 
 __all__ = [

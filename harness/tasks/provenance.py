@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.data.episode import MinMaxNormalizer
+from harness.core.episode import MinMaxNormalizer
 from harness.data.store import Dataset
 from harness.plant import Sedan
 

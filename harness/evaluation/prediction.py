@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.artifacts import save_arrays
-from harness.data.episode import Episode
-from harness.figures import save_figure
+from harness.core.episode import Episode
+from harness.output import save_arrays, save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
 

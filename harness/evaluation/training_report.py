@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.data.episode import Episode, MinMaxNormalizer
-from harness.figures import save_figure
-from harness.metrics import write_json_atomic
+from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.files import write_json_atomic
+from harness.output import save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
 from learners.trained import TrainedLearner

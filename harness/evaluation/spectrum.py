@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.figures import save_figure
-from harness.interfaces import INPUT_NAMES, STATE_NAMES, BilinearModel, LiftedModel
+from harness.core.contracts import INPUT_NAMES, STATE_NAMES, BilinearModel, LiftedModel
+from harness.output import save_figure
 from harness.recorder import Recorder
 
 __all__ = ["TOLERANCE", "plot_spectrum", "record_spectrum", "spectrum", "state_matrices"]

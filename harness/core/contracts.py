@@ -23,14 +23,14 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 import numpy as np
 
 if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import nothing heavy
-    from harness.data.episode import MinMaxNormalizer
-    from harness.references.path import ReferencePath
+    from harness.core.episode import MinMaxNormalizer
+    from harness.core.reference_path import ReferencePath
 
 STATE_NAMES: tuple[str, ...] = ("vx", "vy", "yaw_rate")
 INPUT_NAMES: tuple[str, ...] = ("steer_wheel_deg", "pedal")
 # ``controller.compute_delay``: control periods between a measurement and the plant receiving
 # the input computed from it. The loop holds each input that long
-# (:func:`harness.rollout.closed_loop`); a controller that knows it predicts its model forward
+# (:func:`harness.plant.rollout.closed_loop`); a controller that knows it predicts its model forward
 # as far (DE-MPC's delay compensation).
 COMPUTE_DELAYS: dict[str, int] = {"none": 0, "one_step": 1}
 

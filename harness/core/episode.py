@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from harness.interfaces import INPUT_NAMES, STATE_NAMES
-from harness.plant.sedan import BRAKE_MAX_MPA, THROTTLE_MAX
+from harness.core.contracts import INPUT_NAMES, STATE_NAMES
+from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
 
 POSE_NAMES = ("X", "Y", "yaw")
 

@@ -1,15 +1,16 @@
 """Closed-loop rollouts of a plant under a policy, kept as arrays for metrics and recording.
 
 :func:`closed_loop` is the one loop that steps a plant under feedback: data collection
-(:func:`harness.data.store.drive_episode`), closed-loop tracking (:func:`harness.tracking.track`)
-and the characterization tests (:func:`simulate`) are each a call of it with their options:
+(:func:`harness.data.store.drive_episode`), closed-loop tracking
+(:func:`harness.evaluation.tracking.track`) and the characterization tests (:func:`simulate`)
+are each a call of it with their options:
 
 - ``stop`` ends the run early (a spin, a test's end condition), keeping or dropping the frame
   where it fired (``keep_stop_frame``);
 - ``act_on_last``: the last frame gets its own input from the policy (recorded data) instead
   of repeating the previous one (tracking, tests: the run ends there);
 - ``timed``: the wall time of every policy call (a controller's solve time);
-- ``keep_infos``: the :class:`~harness.interfaces.StepInfo` of every call (solve paths,
+- ``keep_infos``: the :class:`~harness.core.contracts.StepInfo` of every call (solve paths,
   fallbacks, predicted horizons: :meth:`Rollout.predicted`);
 - ``delay_steps``: the clock in the loop (``controller.compute_delay``): each input reaches the
   plant that many control periods after the measurement it was computed from.
@@ -26,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harness.interfaces import Plant, StepInfo
+from harness.core.contracts import Plant, StepInfo
 from harness.plant import Sedan
 
 Policy = Callable[[float, np.ndarray], np.ndarray | tuple[float, float]]
@@ -97,10 +98,10 @@ def closed_loop(
     """Reset ``plant`` (``seed``; at rest, or rolling at ``speed_mps``) and run ``frames`` frames.
 
     Each frame k records x_k and the pose, asks ``act(x_k, t_k)`` for u_k (a
-    :class:`~harness.interfaces.Controller`'s ``act`` as it is) and steps the plant. ``stop(t, x)``
-    is checked from frame 2 on (every rollout keeps a start and one step): where it fires the
-    run ends, with that frame (``keep_stop_frame``) or without it (a spin the data should not
-    hold). A non-finite state stops the run with an error.
+    :class:`~harness.core.contracts.Controller`'s ``act`` as it is) and steps the plant. ``stop(t,
+    x)`` is checked from frame 2 on (every rollout keeps a start and one step): where it fires the
+    run ends, with that frame (``keep_stop_frame``) or without it (a spin the data should not hold).
+    A non-finite state stops the run with an error.
 
     With ``delay_steps`` d, u_k is applied over [t_{k+d}, t_{k+d+1}): the policy's answer
     arrives when its computation has used up d periods. Until the first one arrives the plant
