@@ -137,8 +137,8 @@ def test_evaluate_draws_the_paper_figure_and_records_truth_with_predictions(
     rollouts: list[dict[str, Any]] = []
 
     class Capture(Recorder):
-        def rollout(self, name, time_s, states, inputs, poses=None, extra=None, **kwargs):
-            rollouts.append({"name": name, "states": states, "extra": extra})
+        def rollout(self, name, time_s, states, inputs, poses=None, overlays=None, **kwargs):
+            rollouts.append({"name": name, "states": states, "overlays": overlays})
 
     episodes = [linear_episode("a", 300, 3), linear_episode("b", 200, 4)]
     results = evaluate(
@@ -148,8 +148,9 @@ def test_evaluate_draws_the_paper_figure_and_records_truth_with_predictions(
     assert set(by_episode(results)) == {"a", "b"}
     assert by_episode(results)["b"]["hold_too"] == results["hold_too"]["b"]
     assert [r["name"] for r in rollouts] == ["prediction/a", "prediction/b"]
-    assert set(rollouts[0]["extra"]) == {"predicted_hold", "predicted_hold_too"}
-    assert rollouts[1]["extra"]["predicted_hold"].shape == (200, 3)
+    # Drawn on each state's plot beside the measured drive, one named line per learner.
+    assert set(rollouts[0]["overlays"]) == {"predicted_hold", "predicted_hold_too"}
+    assert rollouts[1]["overlays"]["predicted_hold"].shape == (200, 3)
     for name in ("a", "b"):
         assert (tmp_path / f"prediction_{name}.png").stat().st_size > 20_000
 

@@ -62,9 +62,9 @@ class Rollouts(Recorder):
         super().__init__()
         self.logged: dict[str, Mapping[str, np.ndarray]] = {}
 
-    def rollout(self, name, time_s, states, inputs, poses=None, extra=None, **kwargs) -> None:  # type: ignore[override]
+    def rollout(self, name, time_s, states, inputs, poses=None, overlays=None, **kwargs) -> None:  # type: ignore[override]
         assert len(time_s) == len(states) == len(inputs) == len(poses)
-        self.logged[name] = dict(extra or {})
+        self.logged[name] = dict(overlays or {})
 
 
 def test_the_plant_answers_a_steering_step_from_straight_driving_as_a_car(plant: Sedan) -> None:

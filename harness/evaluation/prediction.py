@@ -137,7 +137,7 @@ def evaluate(
             episode.states,
             episode.inputs,
             poses=episode.poses,
-            extra={f"predicted_{name}": _finite(p) for name, p in predictions.items()},
+            overlays={f"predicted_{name}": _finite(p) for name, p in predictions.items()},
         )
         if output_dir is not None:
             plot_prediction(
@@ -236,7 +236,7 @@ def robustness(
             episode.states,
             episode.inputs,
             poses=episode.poses,
-            extra={f"mean_{name}": _finite(b[0]) for name, b in bands.items()},
+            overlays={f"mean_{name}": _finite(b[0]) for name, b in bands.items()},
         )
         if output_dir is not None:
             plot_robustness(episode, bands, Path(output_dir) / f"robustness_{episode.name}.png")

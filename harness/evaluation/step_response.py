@@ -195,7 +195,7 @@ def evaluate(
             response.states,
             response.inputs,
             poses=response.poses,
-            extra={f"predicted_{k}": _padded(response, p) for k, p in predictions[name].items()},
+            overlays={f"predicted_{k}": _padded(response, p) for k, p in predictions[name].items()},
         )
     if output_dir is not None:
         plot_step_responses(responses, predictions, Path(output_dir) / "step_response.png")
