@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from harness.data.store import DataConfig
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
 from harness.references import Reference
+from harness.report.jobs import sweep_jobs
 from harness.tasks.characterize import Characterize
 from harness.tasks.collect import Collect
 from harness.tasks.pipeline import Pipeline
@@ -141,15 +143,25 @@ def test_an_out_of_range_value_fails_validation_in_one_line_naming_the_key(
     assert message in str(info.value) and "\n" not in str(info.value)
 
 
-def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_horizons() -> None:
+def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_horizons(
+    tmp_path: Path,
+) -> None:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(
             config_name="config", overrides=["experiment=paper"], return_hydra_config=True
         )
     params = cfg.hydra.sweeper.params
     assert params.seed == "0,1,2"
-    # every learner of conf/learner/, the physics baseline and the bilinear ones included
-    assert set(params.learner.split(",")) == {p.stem for p in (CONF_DIR / "learner").glob("*.yaml")}
+    # Every learner of conf/learner/, the physics baseline and the bilinear ones included: the
+    # sweep names no learner, it globs the group, and the report resolves the glob as Hydra does.
+    assert params.learner == "glob(*)"
+    OmegaConf.save(cfg, tmp_path / "multirun.yaml")
+    jobs = sweep_jobs(tmp_path / "multirun.yaml")
+    assert jobs is not None
+    learners = {p.stem for p in (CONF_DIR / "learner").glob("*.yaml")}
+    assert len(jobs) == 3 * len(learners)
+    assert {overrides["learner"] for _, overrides in jobs} == learners
+    assert [overrides["seed"] for _, overrides in jobs[: len(learners)]] == ["0"] * len(learners)
     assert cfg.data.episodes == 40
     assert (cfg.controller.Np, cfg.controller.Nc) == (10, 7)
     long = cfg.task.extra_controllers.de_mpc_long

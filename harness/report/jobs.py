@@ -21,10 +21,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from hydra._internal.config_loader_impl import get_overrides_dirname
+from hydra._internal.config_loader_impl import ConfigLoaderImpl, get_overrides_dirname
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra._internal.utils import create_config_search_path
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
+
+from harness.core.paths import CONF_DIR
 
 log = logging.getLogger(__name__)
 
@@ -144,14 +147,16 @@ def _read_json(path: Path) -> tuple[dict[str, Any] | None, str | None]:
 def sweep_jobs(multirun: Path) -> list[tuple[str, dict[str, str]]] | None:
     """Every job a sweep launches: its directory's name and its overrides as
     :func:`parse_overrides` gives them. ``None`` where that cannot be known from ``multirun``
-    (another sweeper, a sweep over a glob, a damaged file)."""
+    (another sweeper, a damaged file). A sweep over a glob of a config group
+    (``experiment=paper``'s ``learner: glob(*)``) is resolved against ``conf/``, as Hydra did."""
     try:
         hydra = OmegaConf.load(multirun).hydra
         if hydra.sweeper._target_.rsplit(".", 1)[-1] != BasicSweeper.__name__:
             return None
         params = hydra.sweeper.get("params") or {}
         lines = [f"{k}={v}" for k, v in params.items()] + list(hydra.overrides.task)
-        parser = OverridesParser.create()
+        loader = ConfigLoaderImpl(config_search_path=create_config_search_path(str(CONF_DIR)))
+        parser = OverridesParser.create(config_loader=loader)
         (batch,) = BasicSweeper.split_arguments(parser.parse_overrides(lines), None)
         naming = hydra.job.config.override_dirname
         jobs = []
