@@ -1,0 +1,88 @@
+"""Every learner YAML is tested by being there: a new learner is one class plus one YAML file, and
+the YAML alone enrols it here (the class needs one row of tiny settings below, keyed by the
+class, not by the config's name).
+
+Each ``conf/learner/*.yaml`` composes, builds its class, fits a few drives of the real plant in
+seconds, predicts a held-out drive finitely from its measured start, and survives a save and a
+load with the same predictions to rounding.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.utils import get_class, instantiate
+
+from harness.core.episode import MinMaxNormalizer
+from harness.core.paths import CONF_DIR
+from learners import Learner
+from learners import load as load_learner
+from tests.toydata import drive_episodes
+
+NAMES = sorted(path.stem for path in (CONF_DIR / "learner").glob("*.yaml"))
+
+_NETWORK = [
+    "learner.training.max_steps=60",
+    "learner.training.eval_every_steps=30",
+    "learner.training.checkpoint_every_steps=30",
+    "learner.training.batch_size=16",
+    "learner.training.progress=false",
+    "learner.horizon=10",
+]
+# Sizes small enough for seconds, keyed by the class a YAML names (its ``_target_``).
+TINY: dict[str, list[str]] = {
+    "learners.edmd.EDMD": [],
+    "learners.bilinear.BilinearEDMD": ["learner.dictionary.num_centers=30"],
+    "learners.input_edmd.InputEDMD": ["learner.dictionary.num_centers=100"],
+    "learners.single_track.SingleTrack": [],
+    "learners.dnn.DNN": [*_NETWORK, "learner.hidden=[16,16]"],
+    "learners.deep_edmd.DeepEDMD": _NETWORK,
+    "learners.bilinear_deep_edmd.BilinearDeepEDMD": _NETWORK,
+}
+
+
+def compose_learner(name: str, *overrides: str):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=[f"learner={name}", *overrides]).learner
+
+
+@pytest.fixture(scope="module")
+def drives() -> dict:
+    episodes = drive_episodes(6, 60.0)  # the drives tests/test_learners.py fits (cached)
+    return {
+        "train": episodes[:4],
+        "validation": episodes[4:5],
+        "test": episodes[5],
+        "normalizer": MinMaxNormalizer.fit(episodes[:4]),
+    }
+
+
+def test_every_learner_class_of_conf_has_its_tiny_settings() -> None:
+    targets = {compose_learner(name)._target_ for name in NAMES}
+    missing = targets - set(TINY)
+    assert missing == set(), f"add a row to TINY in {__file__} for {sorted(missing)}"
+    assert len(NAMES) >= 11
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_learner_yaml_builds_fits_predicts_and_round_trips(
+    name: str, drives: dict, tmp_path: Path
+) -> None:
+    cfg = compose_learner(name)
+    cfg = compose_learner(name, *TINY[cfg._target_])
+    learner = instantiate(cfg)
+    assert type(learner) is get_class(cfg._target_) and isinstance(learner, Learner)
+    fitted = learner.fit(drives["train"], drives["validation"], drives["normalizer"])
+    assert fitted is learner
+    test = drives["test"]
+    predicted = learner.predict(test.states[0], test.inputs[:300])
+    assert predicted.shape == (301, 3) and np.isfinite(predicted).all()
+    np.testing.assert_array_equal(predicted[0], test.states[0])  # it starts where the car was
+    loaded = load_learner(learner.save(tmp_path / f"model_{name}.pt"))
+    assert type(loaded) is type(learner)
+    np.testing.assert_allclose(
+        loaded.predict(test.states[0], test.inputs[:300]), predicted, rtol=1e-6, atol=1e-9
+    )
