@@ -4,4 +4,3 @@ from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # harness/core/paths.py -> the repository
 CONF_DIR = REPO_ROOT / "conf"
-MJCF_DIR = REPO_ROOT / "models" / "mjcf"
