@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import logging
 import math
-import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
@@ -39,6 +38,7 @@ from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVa
 from controllers.linearization import BilinearLinearization
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.core.budget import check_memory
+from harness.core.checks import is_number
 from harness.core.contracts import (
     COMPUTE_DELAYS,
     BilinearModel,
@@ -602,9 +602,7 @@ def _check_types(config: DEMPCConfig) -> None:
         value = getattr(config, spec.name)
         if spec.type == "bool" and not isinstance(value, bool):
             raise ValueError(f"controller.{spec.name} must be true or false (got {value!r})")
-        if spec.type in ("int", "float") and (
-            isinstance(value, bool) or not isinstance(value, numbers.Real)
-        ):
+        if spec.type in ("int", "float") and not is_number(value):
             raise ValueError(f"controller.{spec.name} must be a number (got {value!r})")
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import numbers
 import re
 import types
 import typing
@@ -27,6 +26,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from harness.core.checks import is_number
 from harness.data.store import DataConfig
 from harness.plant.params import SedanParams
 
@@ -176,7 +176,7 @@ def _check_argument_types(node: DictConfig, path: str) -> None:
         if bool in kinds and not kinds - {bool, type(None)}:
             if not isinstance(value, bool):
                 raise ValueError(f"{full_key} must be true or false (got {value!r})")
-        elif isinstance(value, bool) or not isinstance(value, numbers.Real):
+        elif not is_number(value):
             raise ValueError(f"{full_key} must be a number (got {value!r})")
 
 

@@ -30,6 +30,7 @@ from typing import Any, ClassVar, NamedTuple, Self
 import numpy as np
 import torch
 
+from harness.core.checks import is_number
 from harness.core.contracts import INPUT_NAMES, STATE_NAMES
 from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.files import write_atomic
@@ -388,11 +389,6 @@ def check_int(key: str, value: Any, minimum: int) -> int:
     ok = isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= minimum
     check(bool(ok), key, f"an integer >= {minimum}", value)
     return int(value)
-
-
-def is_number(value: Any) -> bool:
-    """A real number: not a bool, nor a string that reads as one (``'1e-4'``)."""
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def check_positive(key: str, value: Any) -> float:
