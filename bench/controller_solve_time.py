@@ -1,123 +1,313 @@
-"""Whole control steps of every DE-MPC variant, side by side, in one run.
+"""Whole control steps of every controller, today's code against a base commit's, in one run.
 
-``python -m bench.controller_solve_time [--quick]``. Models fitted on the synthetic driver's
-drives (6 drives of 30 s; ``--quick``: 3 of 15 s) close the loop on the sedan for the ISO 3888-1
-double lane change at 80 km/h, at both of the paper's horizons:
+``python -m bench.controller_solve_time [--quick] [--base REV] [--horizons 60/50] ...``. One model
+of each kind is fitted on the synthetic driver's drives (6 drives of 30 s; ``--quick``: 3 of 15 s;
+the networks for a few hundred batches: a step's time depends on the network's size, not on its
+accuracy) and closes the loop on the sedan through the ISO 3888-1 double lane change at 80 km/h:
 
-- DE-MPC on EDMD (N = 104, lifted-linear: prediction matrices built once per model);
-- DE-MPC on bilinear EDMD (N = 104): linearised along the previous plan and rebuilt every step
-  (the time-varying QP);
+- DE-MPC on EDMD (N = 104) and Deep EDMD (N = 13): lifted-linear, prediction matrices built once;
+- DE-MPC on bilinear EDMD (N = 104), input EDMD (N = 3) and the DNN (N = 3, two linearisations a
+  step as ``controller=dnn_mpc``): linearised along the previous plan every step;
 - ``bicycle_mpc``: the identified single-track model (N = 3), time-varying in the speed;
 
-each tracking the reference's states (the paper's), the same offset-free (a disturbance estimate
-in every prediction), and following the course's centre line (``reference: path``: the path
-QP's prediction and Hessian are rebuilt every step, for the LTI model too); and each with
-both ``qp_solver`` values: ``daqp`` (the default) and ``active_set`` (ours), the QPs' second
-solve path, run after run in the same process.
+each tracking the reference's states (the paper's), offset-free, and following the course's
+centre line (``reference: path``), at both of the paper's horizons (10/7 and 60/50).
 
-Times are whole ``act`` calls as ``harness.evaluation.tracking`` measures them (lift, linearisation,
-prediction matrices, QP, input recovery) on the machine as it is; the table says the load.
+Every case runs twice, back to back, on the same saved model: with this checkout's code and with
+the code of ``--base`` (a commit, exported with ``git archive`` to a temporary folder and run in
+a subprocess with ``PYTHONPATH`` on it): the ratio base/new is measured under the same load.
+Times are whole ``act`` calls as ``harness.evaluation.tracking`` measures them (``solve_time_ms``:
+with a real-time-iteration controller the feedback phase, ``prepare_time_ms`` the preparation).
+The lane change's maximum lateral deviation and yaw-rate RMSE of both runs are printed too: a
+faster step must track the same.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
-from collections.abc import Callable
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from bench.machine import describe
-from controllers import DEMPC, DEMPCConfig
-from harness.core.contracts import LiftedModel, LinearizableModel
-from harness.core.episode import Episode, MinMaxNormalizer
-from harness.data.driver import DriverKnowledge
-from harness.data.store import DataConfig, drive_episode
-from harness.evaluation.tracking import track
-from harness.plant import Sedan
-from harness.recorder import Recorder
-from harness.references import DoubleLaneChange, path_metrics
-from learners.bilinear import BilinearEDMD
-from learners.edmd import EDMD
-from learners.single_track import SingleTrack
-
-TARGETS_MS = {(10, 7): 0.5, (60, 50): 2.0}  # issue 11: median of a time-varying step
-QP_SOLVERS = ("daqp", "active_set")
-MODES = {  # name: DEMPCConfig keys
+REPO = Path(__file__).resolve().parents[1]
+# The implementation issue 22 set out to speed up (the last commit before its item 1).
+BASE_COMMIT = "35feb0485a809d40155c0d6fe746e2e8e7fe63b8"
+# Issue 22's targets for the feedback phase (ms): median, p99, max at 60/50; median at 10/7;
+# median for the models with three states.
+TARGETS_MS = {"60/50": (1.0, 2.0, 5.0), "10/7": (0.2, None, None)}
+SMALL_MEDIAN_MS = 0.3
+HORIZONS = ("10/7", "60/50")
+MODES: dict[str, dict[str, Any]] = {
     "states": {},
     "offset-free": {"offset_free": True},
     "path": {"reference": "path"},
 }
+# name: (conf/learner file, DEMPCConfig keys beyond the mode's)
+CONTROLLERS: dict[str, tuple[str, dict[str, Any]]] = {
+    "edmd": ("edmd", {}),
+    "deep_edmd": ("deep_edmd", {}),
+    "bilinear_edmd": ("bilinear_edmd", {}),
+    "input_edmd": ("input_edmd", {}),
+    "dnn": ("dnn", {"sqp_iterations": 2}),
+    "bicycle_mpc": ("single_track", {}),
+}
+_TRAINING = [
+    "learner.training.max_steps=300",
+    "learner.training.eval_every_steps=300",
+    "learner.training.checkpoint_every_steps=300",
+    "learner.training.progress=false",
+    "learner.training.num_threads=1",
+]
 
 
-def drives(count: int, steps: int) -> list[Episode]:
-    plant, data, episodes = Sedan(), DataConfig(), []
-    for index in range(count):
-        d = drive_episode(plant, data, DriverKnowledge.of(plant.params), index, steps)
-        episodes.append(
-            Episode(f"drive_{index}", d["time_s"], d["states"], d["inputs"], d["poses"])
+# ---- the worker: runs cases with whichever code its PYTHONPATH imports ------------------------
+
+
+def run_case(model_path: str, controller: str, mode: str, horizon: str) -> dict[str, Any]:
+    """One lane change of ``controller`` in ``mode`` at ``horizon``: times and tracking."""
+    from controllers import BicycleMPCConfig, DEMPCConfig
+    from harness.evaluation.tracking import track
+    from harness.plant import Sedan
+    from harness.recorder import Recorder
+    from harness.references import DoubleLaneChange, path_metrics
+    from learners import load
+
+    model: Any = _MODELS.get(model_path)
+    if model is None:
+        model = _MODELS[model_path] = load(model_path)
+    Np, Nc = (int(value) for value in horizon.split("/"))
+    factory = BicycleMPCConfig if controller == "bicycle_mpc" else DEMPCConfig
+    keys = {**CONTROLLERS[controller][1], **MODES[mode]}
+    plant = Sedan()
+    lane_change = DoubleLaneChange()
+    reference, course = lane_change.build(plant.dt, []), lane_change.course()
+    built = factory(Np=Np, Nc=Nc, **keys)(model, plant.dt)  # type: ignore[arg-type]
+    metrics, run = track(
+        plant, built, reference, name="bench", recorder=Recorder(), path=course.path()
+    )
+    judged = path_metrics(course, run.poses, run.states)
+    return {
+        "feedback": metrics["solve_time_ms"],
+        "prepare": metrics.get("prepare_time_ms"),
+        "misses": metrics["deadline_misses"],
+        "deviation_m": judged["max_lateral_deviation_m"],
+        "rmse_yaw_rate": metrics["rmse"]["yaw_rate"],
+        "N": int(np.asarray(model.C_).shape[1]),
+    }
+
+
+_MODELS: dict[str, Any] = {}
+
+
+def worker() -> None:
+    """Answer one JSON case per stdin line with one JSON result line (until stdin closes)."""
+    for line in sys.stdin:
+        case = json.loads(line)
+        try:
+            result: dict[str, Any] = run_case(**case)
+        except Exception as error:  # a case the base code cannot run is reported, not fatal
+            result = {"error": f"{type(error).__name__}: {str(error).splitlines()[0][:120]}"}
+        print(json.dumps(result), flush=True)
+
+
+class Worker:
+    """A worker subprocess importing the project from ``root``."""
+
+    def __init__(self, root: Path) -> None:
+        env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+        self.process = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--worker"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
+            cwd=str(root),
         )
-    return episodes
+
+    def run(self, case: dict[str, str]) -> dict[str, Any]:
+        assert self.process.stdin is not None and self.process.stdout is not None
+        self.process.stdin.write(json.dumps(case) + "\n")
+        self.process.stdin.flush()
+        line = self.process.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the worker in {case} ended without an answer")
+        return dict(json.loads(line))
+
+    def close(self) -> None:
+        assert self.process.stdin is not None
+        self.process.stdin.close()
+        self.process.wait()
+
+
+# ---- the driver: fits the models, runs every case on both codes, prints the table -------------
+
+
+def fit_models(directory: Path, quick: bool, names: list[str]) -> dict[str, str]:
+    """Each learner of ``names`` fitted on the synthetic driver's drives and saved: its path."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from harness.config import register_configs
+    from harness.core.episode import Episode, MinMaxNormalizer
+    from harness.core.paths import CONF_DIR
+    from harness.data.driver import DriverKnowledge
+    from harness.data.store import DataConfig, drive_episode
+    from harness.plant import Sedan
+
+    register_configs()
+    count, steps = (3, 1500) if quick else (6, 3000)
+    plant, data, drives = Sedan(), DataConfig(), []
+    for index in range(count + 1):
+        d = drive_episode(plant, data, DriverKnowledge.of(plant.params), index, steps)
+        drives.append(Episode(f"drive_{index}", d["time_s"], d["states"], d["inputs"], d["poses"]))
+    train, validation = drives[:count], drives[count:]
+    normalizer = MinMaxNormalizer.fit(train)
+    paths = {}
+    for name in names:
+        if (directory / f"{name}.pt").exists():  # --models: fitted by an earlier run
+            paths[name] = str(directory / f"{name}.pt")
+            continue
+        learner_file = CONTROLLERS[name][0]
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=[f"learner={learner_file}"])
+            if "training" in cfg.learner:
+                cfg = compose(
+                    config_name="config", overrides=[f"learner={learner_file}", *_TRAINING]
+                )
+        learner = instantiate(cfg.learner)
+        learner.fit(train, validation, normalizer)
+        paths[name] = str(learner.save(directory / f"{name}.pt"))
+    print(f"models fitted on {count} drives of {steps / 100:.0f} s (networks: 300 batches)")
+    return paths
+
+
+def export(revision: str, directory: Path) -> Path:
+    """The tree of ``revision`` (git archive, no worktree) under ``directory``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    sha = subprocess.run(
+        ["git", "rev-parse", revision], cwd=REPO, check=True, capture_output=True, text=True
+    ).stdout.strip()
+    archive = subprocess.run(["git", "archive", sha], cwd=REPO, check=True, capture_output=True)
+    subprocess.run(["tar", "-x", "-C", str(directory)], input=archive.stdout, check=True)
+    print(f"base: {sha} (exported to {directory})")
+    return directory
+
+
+def _times(times: dict[str, float] | None) -> str:
+    if not times:
+        return "–"
+    return f"{times['median']:.3f} / {times['p99']:.3f} / {times['max']:.2f}"
+
+
+def _mark(result: dict[str, Any], horizon: str) -> str:
+    """✓ where the feedback phase meets issue 22's targets, ✗ where it does not."""
+    median_max, p99_max, max_max = TARGETS_MS[horizon]
+    if result["N"] <= 3 and horizon == "60/50":
+        median_max = SMALL_MEDIAN_MS
+    times = result["feedback"]
+    met = times["median"] <= median_max
+    met &= p99_max is None or times["p99"] <= p99_max
+    met &= max_max is None or times["max"] <= max_max
+    return "✓" if met else "✗"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="3 drives of 15 s, DLC only once")
+    parser.add_argument("--quick", action="store_true", help="3 drives of 15 s to fit on")
+    parser.add_argument("--base", default=BASE_COMMIT, help="commit to compare with ('' skips)")
+    parser.add_argument("--horizons", default=",".join(HORIZONS))
+    parser.add_argument("--controllers", default=",".join(CONTROLLERS))
+    parser.add_argument("--modes", default=",".join(MODES))
+    parser.add_argument("--models", default="", help="folder to keep fitted models in, reused")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--fit-into", default="", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    print(f"machine: {describe()}; load average {os.getloadavg()[0]:.2f} at start")
-    count, steps = (3, 1500) if args.quick else (6, 3000)
-    train = drives(count, steps)
-    normalizer = MinMaxNormalizer.fit(train)
-    fits: dict[str, Callable[[], LiftedModel | LinearizableModel]] = {
-        "de_mpc on edmd (LTI)": lambda: EDMD().fit(train, [], normalizer),
-        "de_mpc on bilinear_edmd (TV)": lambda: BilinearEDMD().fit(train, [], normalizer),
-        "bicycle_mpc (TV)": lambda: SingleTrack().fit(train, [], normalizer),
-    }
-    models = {name: fit() for name, fit in fits.items()}
-    lane_change = DoubleLaneChange()
-    reference, path = lane_change.build(0.01, []), lane_change.course().path()
-    print(f"models fitted on {count} drives of {steps / 100:.0f} s; reference: ISO 3888-1 DLC\n")
-    print(
-        "| Np/Nc | controller | mode | qp_solver | N | median ms | p99 ms | max ms | "
-        "deadline misses | rmse vx / vy / yaw rate | max lateral deviation m | paths |"
-    )
-    print("|" + "---|" * 12)
-    for horizons, (name, model), (mode, keys), qp_solver in itertools.product(
-        ((10, 7), (60, 50)), models.items(), MODES.items(), QP_SOLVERS
+    if args.worker:
+        worker()
+        return
+    if args.fit_into:
+        fit_models(Path(args.fit_into), args.quick, args.controllers.split(","))
+        return
+    from bench.machine import describe
+
+    horizons, modes = args.horizons.split(","), args.modes.split(",")
+    names = args.controllers.split(",")
+    for value, known, key in (
+        (horizons, HORIZONS, "horizons"),
+        (names, CONTROLLERS, "controllers"),
+        (modes, MODES, "modes"),
     ):
-        config = DEMPCConfig(
-            Np=horizons[0],
-            Nc=horizons[1],
-            qp_solver=qp_solver,
-            **keys,  # type: ignore[arg-type]
-        )
-        metrics, run = track(
-            Sedan(),
-            DEMPC(model, config),
-            reference,
-            name="bench",
-            recorder=Recorder(),
-            path=path,
-        )
-        deviation = path_metrics(lane_change.course(), run.poses, run.states)[
-            "max_lateral_deviation_m"
+        unknown = sorted(set(value) - set(known))
+        if unknown:
+            parser.error(f"--{key}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
+    print(f"machine: {describe()}; load average {os.getloadavg()[0]:.2f} at start")
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(args.models) if args.models else Path(scratch)
+        folder.mkdir(parents=True, exist_ok=True)
+        base_root = export(args.base, Path(scratch) / "base") if args.base else None
+        # Fitted and saved by the older code where there is one: both codes read its files.
+        root = REPO if base_root is None else base_root
+        command = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--fit-into",
+            str(folder),
+            "--controllers",
+            ",".join(names),
+            *(["--quick"] if args.quick else []),
         ]
-        times, rmse = metrics["solve_time_ms"], metrics["rmse"]
-        size = np.asarray(model.C_).shape[1]
-        paths = " ".join(f"{k}:{v}" for k, v in sorted(metrics["solve_paths"].items()))
-        target = TARGETS_MS[horizons] if "TV" in name else None
-        mark = "" if target is None else (" ✓" if times["median"] <= target else " ✗")
+        subprocess.run(command, check=True, cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
+        models = {name: str(folder / f"{name}.pt") for name in names}
+        new = Worker(REPO)
+        base = Worker(base_root) if base_root is not None else None
         print(
-            f"| {horizons[0]}/{horizons[1]} | {name} | {mode} | {qp_solver} | {size} | "
-            f"{times['median']:.3f}{mark} | {times['p99']:.3f} | {times['max']:.2f} | "
-            f"{metrics['deadline_misses']} | {rmse['vx']:.3f} / {rmse['vy']:.3f} / "
-            f"{rmse['yaw_rate']:.3f} | {deviation:.2f} | {paths} |"
+            "\n| Np/Nc | controller | mode | N | feedback median / p99 / max ms | target | "
+            "prepare median / p99 / max ms | misses | base median / p99 / max ms | "
+            "base/new median | base/new p99 | max deviation m new / base | "
+            "yaw-rate RMSE new / base |"
         )
+        print("|" + "---|" * 13)
+        for horizon, name, mode in itertools.product(horizons, names, modes):
+            case = {
+                "model_path": models[name],
+                "controller": name,
+                "mode": mode,
+                "horizon": horizon,
+            }
+            ours = new.run(case)
+            theirs: dict[str, Any] = base.run(case) if base is not None else {"error": "–"}
+            if "error" in ours:
+                print(f"| {horizon} | {name} | {mode} | – | {ours['error']} |", flush=True)
+                continue
+            if "error" in theirs:
+                theirs_times, ratio_median, ratio_p99, deviation, rmse = "–", "–", "–", "–", "–"
+            else:
+                theirs_times = _times(theirs["feedback"])
+                ratio_median = f"{theirs['feedback']['median'] / ours['feedback']['median']:.1f}"
+                ratio_p99 = f"{theirs['feedback']['p99'] / ours['feedback']['p99']:.1f}"
+                deviation, rmse = f"{theirs['deviation_m']:.3f}", f"{theirs['rmse_yaw_rate']:.4f}"
+            print(
+                f"| {horizon} | {name} | {mode} | {ours['N']} | {_times(ours['feedback'])} | "
+                f"{_mark(ours, horizon)} | {_times(ours['prepare'])} | {ours['misses']} | "
+                f"{theirs_times} | {ratio_median} | {ratio_p99} | "
+                f"{ours['deviation_m']:.3f} / {deviation} | "
+                f"{ours['rmse_yaw_rate']:.4f} / {rmse} |",
+                flush=True,
+            )
+        new.close()
+        if base is not None:
+            base.close()
     print(
-        "\nTargets (issue 11, time-varying controllers): median <= 0.5 ms at 10/7 and <= 2 ms at "
-        "60/50 (✓/✗); max <= 3 ms at 60/50 for every controller. Path following (issue 12): "
-        "within 1.2x of state tracking at the same horizons."
+        f"\nload average {os.getloadavg()[0]:.2f} at the end. Targets (issue 22, feedback phase): "
+        "60/50 median <= 1 ms (<= 0.3 ms for N = 3), p99 <= 2 ms, max <= 5 ms; 10/7 median "
+        "<= 0.2 ms (✓/✗). Ratios: base / new, the same case back to back."
     )
 
 
