@@ -61,6 +61,9 @@ PATHS = ("unconstrained", "active_set", "daqp", "piqp", "failed")
 QP_SOLVERS = ("daqp", "active_set")
 # DAQP's exit flag for an optimum (1); 2 (soft optimum) cannot happen without soft rows.
 DAQP_OPTIMAL = 1
+# Lifts this small (the three-state models) get their free response as one product with maps
+# built with the model (``free_response_maps``), not a loop over the horizon at every solve.
+SMALL_LIFT = 16
 
 
 @dataclass(frozen=True)
@@ -256,6 +259,12 @@ class CondensedQP:
         self._daqp = None
         if self.active_set and self.qp_solver == "daqp":
             self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
+
+    def prepare_solvers(self) -> None:
+        """Build now what the active-set solver would build at its first constrained solve
+        (DAQP's rows G L⁻ᵀ): the real-time iteration's preparation, before the measurement."""
+        if self.active_set and self.qp_solver == "daqp":
+            self._ensure_daqp()
 
     def _daqp_setup(self, f: np.ndarray, b: np.ndarray) -> daqp.Model | None:
         """A DAQP workspace for this QP's rows, cold (no active row); None if DAQP refuses.
@@ -614,6 +623,8 @@ class TimeVaryingQP(CondensedQP):
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
         self._given_free: np.ndarray | None = None
+        self._w: np.ndarray | None = None  # a constant drive added to every step's d
+        self._free_maps: np.ndarray | None = None  # small lifts: free response as products
         self.reset()
 
     def set_model(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None = None) -> None:
@@ -636,6 +647,11 @@ class TimeVaryingQP(CondensedQP):
         theta = self._model_theta(A, B, d)
         return theta, self.free_response(z, v_prev)
 
+    def model_theta(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+        """Θ of the model (A, B, d) as :meth:`set_model` takes it, which then drives
+        :meth:`free_response`, without building this QP's cost (another QP builds on it)."""
+        return self._model_theta(A, B, d)
+
     def _model_theta(self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None) -> np.ndarray:
         """Θ of the model (A, B, d), which then drives :meth:`free_response`."""
         Np, N, m, Nc = self.Np, self.N, self.m, self.Nc
@@ -649,13 +665,21 @@ class TimeVaryingQP(CondensedQP):
             )
         self._free_key = None
         self._given_free = None
+        self._w = None
         if K == 1:
             theta = time_invariant_theta(A[0], B[0], self.C, Np, Nc)
             A, B, d = (np.broadcast_to(a, (Np, *a.shape[1:])) for a in (A, B, d))
         else:
             theta = time_varying_theta(A, B, self.C, Nc)
         self._A, self._B, self._d = A, B, d
+        self._free_maps = free_response_maps(A, B, d, self.C) if N <= SMALL_LIFT else None
         return theta
+
+    def set_disturbance(self, w: np.ndarray | None) -> None:
+        """A constant w (N,) added to every step of the model set last (z⁺ = A_k z + B_k v +
+        d_k + w: offset-free), which moves the free response only: Θ and the Hessian stay."""
+        self._w = None if w is None else np.asarray(w, dtype=float)
+        self._free_key = None
 
     def set_prediction(self, theta: np.ndarray, free: np.ndarray) -> None:
         """The step's prediction given directly, Y = free + Θ ΔV (Θ (n Np, m Nc), free (n Np,)),
@@ -668,6 +692,20 @@ class TimeVaryingQP(CondensedQP):
         self._given_free = free
         if not np.array_equal(theta, self.theta):  # the same Θ keeps its Hessian and dual
             self._set_theta(theta)
+
+    def set_prediction_matrix(self, theta: np.ndarray) -> None:
+        """Θ alone (as :meth:`set_prediction`'s), with its Hessian and factor: the preparation
+        of a step whose free response :meth:`set_free_response` gives when it is measured."""
+        shape = (self.n * self.Np, self.m * self.Nc)
+        if theta.shape != shape:
+            raise ValueError(f"prediction must be Θ {shape}, got {theta.shape}")
+        self._set_theta(np.asarray(theta, dtype=float))
+
+    def set_free_response(self, free: np.ndarray) -> None:
+        """The free response (n Np,) of a step whose Θ is already set."""
+        if free.shape != (self.n * self.Np,):
+            raise ValueError(f"free response must be ({self.n * self.Np},), got {free.shape}")
+        self._given_free = free
 
     def _set_theta(self, theta: np.ndarray) -> None:
         """Θ, and what follows from it: the Hessian, its factor and the unconstrained gain."""
@@ -697,13 +735,19 @@ class TimeVaryingQP(CondensedQP):
             return self._given_free
         key = (np.asarray(z, dtype=float).tobytes(), np.asarray(v_prev, dtype=float).tobytes())
         if key != self._free_key:  # solve and its PIQP fallback ask for the same one
-            drive = self._B @ v_prev + self._d  # (Np, N)
-            states = np.empty((self.Np, self.N))
-            state = np.asarray(z, dtype=float)
-            for k in range(self.Np):  # each step needs the previous: a short loop of products
-                state = self._A[k] @ state + drive[k]
-                states[k] = state
-            self._free = (states @ self.C.T).ravel()
+            if self._free_maps is not None:  # outputs from [z; v; w; 1]: one product
+                w = np.zeros(self.N) if self._w is None else self._w
+                self._free = self._free_maps @ np.concatenate([z, v_prev, w, [1.0]])
+            else:
+                drive = self._B @ v_prev + self._d  # (Np, N)
+                if self._w is not None:
+                    drive = drive + self._w
+                states = np.empty((self.Np, self.N))
+                state = np.asarray(z, dtype=float)
+                for k in range(self.Np):  # each step needs the previous: a loop of products
+                    state = self._A[k] @ state + drive[k]
+                    states[k] = state
+                self._free = (states @ self.C.T).ravel()
             self._free_key = key
         return self._free
 
@@ -785,6 +829,30 @@ def time_varying_theta(A: np.ndarray, B: np.ndarray, C: np.ndarray, Nc: int) -> 
         blocks[:, :active] += B[k][:, None, :]
         history[k] = response
     return (C @ history).reshape(Np * C.shape[0], M)
+
+
+def free_response_maps(A: np.ndarray, B: np.ndarray, d: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """(n Np, 2N + m + 1): the outputs y_1..y_Np of z_{k+1} = A_k z_k + B_k v + d_k + w as one
+    matrix on [z_0; v; w; 1] (v and w held over the horizon).
+
+    X_k = [Φ_k | Γ_k | Ω_k | δ_k] (the state's response to z_0, v, w and the d's) obeys
+    X_{k+1} = A_k X_k + [0 | B_k | I | d_k], X_0 = [I | 0 | 0 | 0]: one N×N by N×(2N+m+1)
+    product a step, worth it for a small lift (``SMALL_LIFT``), where it replaces a loop of
+    matrix-vector products at every solve by one product.
+    """
+    Np, N, m = B.shape
+    width = 2 * N + m + 1
+    drive = np.zeros((Np, N, width))
+    drive[:, :, N : N + m] = B
+    drive[:, :, N + m : 2 * N + m] = np.eye(N)
+    drive[:, :, -1] = d
+    history = np.empty((Np, N, width))
+    response = np.zeros((N, width))
+    response[:, :N] = np.eye(N)
+    for k in range(Np):  # each step needs the last
+        response = A[k] @ response + drive[k]
+        history[k] = response
+    return (C @ history).reshape(Np * C.shape[0], width)
 
 
 def time_invariant_theta(

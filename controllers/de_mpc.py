@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -124,6 +123,10 @@ class DEMPCConfig:
     # The clock in the loop (COMPUTE_DELAYS): none, or one_step, each input applied one control
     # period after its measurement and the state predicted that far before planning.
     compute_delay: str = "none"
+    # The real-time iteration (acados's RTI): prepare() builds the next step's linearisation,
+    # prediction matrices, Hessian and factor before its measurement, along the state the model
+    # predicts; act() is then the feedback phase. False: act() does it all from the measurement.
+    real_time_iteration: bool = True
 
     def __post_init__(self) -> None:
         _check_types(self)
@@ -282,6 +285,7 @@ class DEMPC:
             settings["Q"] = config.path_weights()
             self.path_qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **settings)
         self._path: ReferencePath | None = None
+        self._path_band: float | None = None  # the v̄ whose Θ a lifted-linear path QP holds
         self._path_hint: int | None = None
         self._reference: np.ndarray | None = None
         self._reference_steps = 0
@@ -322,6 +326,8 @@ class DEMPC:
         self._plan_step = 0
         self._disturbance = np.zeros(self.C.shape[1])
         self._z_expected: np.ndarray | None = None
+        self._prepared: _Prepared | None = None
+        self._last: _Last | None = None
         self.qp.reset()
         if self.path_qp is not None:
             self.path_qp.reset()
@@ -359,27 +365,25 @@ class DEMPC:
             x = self.normalizer.states_inverse(self.C @ z)
         qp: CondensedQP = self.qp
         shift = np.zeros_like(y_ref)  # the LTI prediction's response to w (offset-free)
+        where: _Where | None = None
         if self._path is not None and self.path_qp is not None:
             if pose is None:
                 raise ValueError("a DE-MPC run that follows a path needs the car's pose in act()")
             qp = self.path_qp
             y_ref, where = self._path_reference(x, pose, y_ref)
-            solution = self._solve_path(z, v_prev, y_ref, w, where)
+        if self.linearization is None and where is not None:
+            solution = self._solve_path_linear(z, v_prev, y_ref, w, where)
         elif self.linearization is None:
             if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
                 shift = self.qp.phi_w @ w
                 y_ref = y_ref - shift
             solution = self.qp.solve(z, v_prev, y_ref)
         else:
-            states_qp = self.qp
-            assert isinstance(states_qp, TimeVaryingQP)
             with single_threaded():  # small products: one BLAS thread is fastest (blas.py)
-                solution = self._solve_time_varying(
-                    z,
-                    v_prev,
-                    lambda A, B, d: states_qp.set_model(A, B, _plus(d, w)),
-                    lambda: states_qp.solve(z, v_prev, y_ref),
-                )
+                if self._prepared is None:  # one phase: prepared along the measurement
+                    self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
+                solution = self._feedback(self._prepared, z, v_prev, y_ref, w, where)
+        self._prepared = None
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
             self._plan_step = 1
@@ -395,6 +399,7 @@ class DEMPC:
         if w is not None:
             # The next measurement's prediction: under delay, the state the plan started from.
             self._z_expected = z if self.delay_steps else self._model_step(z, plan[0]) + w
+        self._last = _Last(z, plan[0], w, x, pose, t)
         # The whole plan converts at the cost of its first move (elementwise, same bits).
         planned_inputs = self.normalizer.inputs_inverse(plan)
         u = np.clip(planned_inputs[0], self.u_min, self.u_max)
@@ -449,53 +454,73 @@ class DEMPC:
         errors_ref = np.zeros((self.Np, ERRORS))
         return np.hstack([self.normalizer.states(states_ref), errors_ref]).ravel(), where
 
-    def _solve_path(
+    def prepare(self) -> None:
+        """The real-time iteration's preparation of the next step, before its measurement:
+        the state it will plan from predicted by the model (from the last step's, under the
+        input it returned; from the reference's first sample before the first step), the
+        linearisation along the shifted plan rolled out from there, Θ, the Hessian and its
+        factor, the active-set solver's rows. :meth:`act` then only measures, builds the free
+        response and solves (the feedback phase). A no-op for a lifted-linear model (built
+        once) but for a path QP's Θ at a new speed band, and when ``real_time_iteration`` is
+        off."""
+        if not self.config.real_time_iteration or self._reference is None:
+            return
+        predicted = self._predicted()
+        if predicted is None:
+            return
+        z, x, pose, t = predicted
+        v_prev = self._v_prev
+        if self.linearization is None:
+            if self._path is not None:  # the path QP's Θ for the speed band expected
+                self._path_theta(SPEED_BAND_MPS * round(float(x[0]) / SPEED_BAND_MPS))
+                assert self.path_qp is not None
+                self.path_qp.prepare_solvers()
+            return
+        k = min(round(t / self.dt) + self.delay_steps, self._reference_steps - 1)
+        y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
+        where: _Where | None = None
+        if self._path is not None:
+            if pose is None:  # before the first step: no pose to locate the car by
+                return
+            y_ref, where = self._path_reference(x, pose, y_ref)
+        w = self._disturbance if self.offset_free else None
+        with single_threaded():
+            self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
+
+    def _predicted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float] | None:
+        """(z, x, pose, t) the next step will plan from, as the model predicts them: the last
+        step's planning state under its first move (+ w), its pose moved on by that step's
+        kinematics; before the first step, the reference's first sample (no pose)."""
+        assert self._reference is not None
+        last = self._last
+        if last is None:
+            x0 = self.normalizer.states_inverse(self._reference[0])
+            z = np.asarray(self.model.lift(x0), dtype=float)
+            if self.delay_steps:
+                z = self._model_step(z, self._v_prev)
+            return z, self.normalizer.states_inverse(self.C @ z), None, 0.0
+        z = self._model_step(last.z, last.v)
+        if last.w is not None:
+            z = z + last.w
+        pose = None if last.pose is None else _pose_ahead(last.pose, last.x, self.dt)
+        return z, self.normalizer.states_inverse(self.C @ z), pose, last.t + self.dt
+
+    def _prepare_at(
         self,
         z: np.ndarray,
         v_prev: np.ndarray,
         y_ref: np.ndarray,
         w: np.ndarray | None,
-        where: _Where,
-    ) -> QPSolution:
-        """The path QP on the model's prediction (its own, linearised as in state tracking,
-        with the disturbance w where offset-free) extended by the errors to the path
-        (``controllers/path_following.py``)."""
-        assert self.frenet is not None and self.path_qp is not None
-        frenet, path_qp, states_qp = self.frenet, self.path_qp, self.qp
-        y0 = self.C @ z
-
-        def set_prediction(theta: np.ndarray, free: np.ndarray) -> None:
-            path_qp.set_prediction(*frenet.extend(theta, free, y0, *where))
-
-        if self.linearization is None:
-            free = states_qp.free_response(z, v_prev)
-            set_prediction(states_qp.theta, free if w is None else free + states_qp.phi_w @ w)
-            return path_qp.solve(z, v_prev, y_ref)
-        assert isinstance(states_qp, TimeVaryingQP)
-        with single_threaded():
-            return self._solve_time_varying(
-                z,
-                v_prev,
-                lambda A, B, d: set_prediction(
-                    *states_qp.model_prediction(A, B, _plus(d, w), z, v_prev)
-                ),
-                lambda: path_qp.solve(z, v_prev, y_ref),
-            )
-
-    def _solve_time_varying(
-        self,
-        z: np.ndarray,
-        v_prev: np.ndarray,
-        set_model: Callable[[np.ndarray, np.ndarray, np.ndarray | None], None],
-        solve: Callable[[], QPSolution],
-    ) -> QPSolution:
+        where: _Where | None,
+    ) -> _Prepared:
         """Linearise along the input guess rolled out from z (or, frozen, at z and the next
-        input only), give the QP that model (``set_model(A, B, d)``) and ``solve``;
-        ``sqp_iterations`` times, each along the plan just found."""
+        input only) and build that model's QP; ``sqp_iterations`` times, each along the plan
+        the previous one solves for (from z, against y_ref, where)."""
         model = self.linearization
         assert model is not None
         guess = self._input_guess(v_prev)
-        for _ in range(self.sqp_iterations):
+        band = None if where is None else where[2]
+        for iteration in range(self.sqp_iterations):
             if self.config.linearization == "frozen":
                 A, B, d = model.linearize(z[None], guess[:1])
             else:
@@ -508,13 +533,85 @@ class DEMPC:
                     "state under the planned inputs): DE-MPC falls back to its previous plan",
                     type(self.model).__name__,
                 )
-                return QPSolution(np.zeros((self.Nc, INPUTS)), 0.0, "failed", 0, MODEL_NOT_FINITE)
-            set_model(A, B, d)
-            solution = solve()
+                failed = QPSolution(np.zeros((self.Nc, INPUTS)), 0.0, "failed", 0, MODEL_NOT_FINITE)
+                return _Prepared(None, failed)
+            prepared = self._build(A, B, d, band)
+            if iteration == self.sqp_iterations - 1:
+                return prepared
+            solution = self._feedback(prepared, z, v_prev, y_ref, w, where)
             if not solution.ok:
-                break
+                return _Prepared(None, solution)
             guess = _held(v_prev + np.cumsum(solution.dv, axis=0), self.Np)
-        return solution
+        raise AssertionError("unreachable: sqp_iterations >= 1")
+
+    def _build(
+        self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None, band: float | None
+    ) -> _Prepared:
+        """The QP of the model (A, B, d): Θ, Hessian, factor, the solver's rows; for a path
+        (band: v̄), the path QP's, extended from the model's Θ."""
+        states_qp = self.qp
+        assert isinstance(states_qp, TimeVaryingQP)
+        if self._path is None:
+            states_qp.set_model(A, B, d)
+            states_qp.prepare_solvers()
+            return _Prepared(None, None)
+        assert self.frenet is not None and self.path_qp is not None and band is not None
+        theta = states_qp.model_theta(A, B, d)
+        self.path_qp.set_prediction_matrix(self.frenet.extend_theta(theta, band))
+        self.path_qp.prepare_solvers()
+        return _Prepared(theta, None, band)
+
+    def _feedback(
+        self,
+        prepared: _Prepared,
+        z: np.ndarray,
+        v_prev: np.ndarray,
+        y_ref: np.ndarray,
+        w: np.ndarray | None,
+        where: _Where | None,
+    ) -> QPSolution:
+        """The feedback phase on a prepared QP: the measured free response (with w), the solve."""
+        if prepared.failed is not None:
+            return prepared.failed
+        states_qp = self.qp
+        assert isinstance(states_qp, TimeVaryingQP)
+        states_qp.set_disturbance(w)
+        if where is None:
+            return states_qp.solve(z, v_prev, y_ref)
+        assert self.frenet is not None and self.path_qp is not None
+        assert prepared.theta is not None
+        if where[2] != prepared.band:  # the speed left the band it was prepared for
+            self.path_qp.set_prediction_matrix(self.frenet.extend_theta(prepared.theta, where[2]))
+        free = states_qp.free_response(z, v_prev)
+        self.path_qp.set_free_response(self.frenet.extend_free(free, self.C @ z, *where))
+        return self.path_qp.solve(z, v_prev, y_ref)
+
+    def _path_theta(self, band: float) -> None:
+        """A lifted-linear model's path QP holds the Θ of speed band ``band`` (built when the
+        band changes: its Hessian and factor with it)."""
+        assert self.frenet is not None and self.path_qp is not None
+        if band != self._path_band:
+            self.path_qp.set_prediction_matrix(self.frenet.extend_theta(self.qp.theta, band))
+            self._path_band = band
+
+    def _solve_path_linear(
+        self,
+        z: np.ndarray,
+        v_prev: np.ndarray,
+        y_ref: np.ndarray,
+        w: np.ndarray | None,
+        where: _Where,
+    ) -> QPSolution:
+        """The path QP of a lifted-linear model: the errors to the path extend its prediction
+        (``controllers/path_following.py``), with the disturbance w where offset-free."""
+        assert self.frenet is not None and self.path_qp is not None
+        states_qp = self.qp
+        free = states_qp.free_response(z, v_prev)
+        if w is not None:
+            free = free + states_qp.phi_w @ w
+        self._path_theta(where[2])
+        self.path_qp.set_free_response(self.frenet.extend_free(free, self.C @ z, *where))
+        return self.path_qp.solve(z, v_prev, y_ref)
 
     def _input_guess(self, v_prev: np.ndarray) -> np.ndarray:
         """(Np, m) inputs to linearise along: the rest of the previous plan held at its end
@@ -532,6 +629,29 @@ class DEMPC:
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self._plan_step += 1
         return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """What a step's preparation built into the QPs, and what the feedback phase needs of it:
+    a path's model Θ and the speed band its path Θ is for; or the failure to report."""
+
+    theta: np.ndarray | None
+    failed: QPSolution | None
+    band: float | None = None
+
+
+@dataclass(frozen=True)
+class _Last:
+    """The last step's planning state (lifted, physical), first move, disturbance, pose and
+    time: the next one's prediction starts from them."""
+
+    z: np.ndarray
+    v: np.ndarray
+    w: np.ndarray | None
+    x: np.ndarray
+    pose: np.ndarray | None
+    t: float
 
 
 def _pose_ahead(pose: np.ndarray, x: np.ndarray, dt: float) -> np.ndarray:

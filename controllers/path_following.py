@@ -54,30 +54,50 @@ class FrenetOutputs:
         """(Θ (5 Np, M), free (5 Np,)) of the outputs (y_k, e_y,k, e_ψ,k), k = 1..Np, from the
         model's prediction of y_1..y_Np (Θ (3 Np, M), free (3 Np,)), its current outputs y0
         (normalized C z_0), the errors now, v̄ and the curvature at steps 0..Np-1 ahead."""
-        dt, v = self.dt, float(speed_mps)
-        Np = len(curvature_per_m)
-        theta = theta.reshape(Np, STATES, -1)
-        free = free.reshape(Np, STATES)
-        span, low = self.span, self.low
-        # Step j's physical states, j = 0..Np-1: j = 0 measured (no input effect), then predicted.
-        free_states = _before(span * np.asarray(y0, dtype=float) + low, span * free + low)
-        theta_states = _before(np.zeros_like(theta[0]), theta * span[:, None])
-        # e_ψ,k = e_ψ,0 + dt Σ_{j<k} (r_j − v̄ κ_j)
-        heading_free = heading_error_rad + dt * np.cumsum(free_states[:, 2] - v * curvature_per_m)
-        heading_theta = dt * np.cumsum(theta_states[:, 2], axis=0)
-        # e_y,k = e_y,0 + dt Σ_{j<k} (vy_j + v̄ e_ψ,j)
-        lateral_free = lateral_error_m + dt * np.cumsum(
-            free_states[:, 1] + v * _before(np.asarray(heading_error_rad), heading_free)
+        return self.extend_theta(theta, speed_mps), self.extend_free(
+            free, y0, lateral_error_m, heading_error_rad, speed_mps, curvature_per_m
         )
+
+    def extend_theta(self, theta: np.ndarray, speed_mps: float) -> np.ndarray:
+        """Θ (5 Np, M) of :meth:`extend`: it depends on the model's Θ and v̄ only, so it is
+        built before the measurement (the real-time iteration's preparation) and kept while v̄
+        stays in its band."""
+        dt, v = self.dt, float(speed_mps)
+        Np = theta.shape[0] // STATES
+        theta = theta.reshape(Np, STATES, -1)
+        theta_states = _before(np.zeros_like(theta[0]), theta * self.span[:, None])
+        heading_theta = dt * np.cumsum(theta_states[:, 2], axis=0)
         lateral_theta = dt * np.cumsum(
             theta_states[:, 1] + v * _before(np.zeros_like(heading_theta[0]), heading_theta),
             axis=0,
         )
-        theta_out = np.concatenate(
+        return np.concatenate(
             [theta, lateral_theta[:, None], heading_theta[:, None]], axis=1
         ).reshape(Np * OUTPUTS, -1)
-        free_out = np.column_stack([free, lateral_free, heading_free]).ravel()
-        return theta_out, free_out
+
+    def extend_free(
+        self,
+        free: np.ndarray,
+        y0: np.ndarray,
+        lateral_error_m: float,
+        heading_error_rad: float,
+        speed_mps: float,
+        curvature_per_m: np.ndarray,
+    ) -> np.ndarray:
+        """free (5 Np,) of :meth:`extend`: what the measurement moves."""
+        dt, v = self.dt, float(speed_mps)
+        Np = len(curvature_per_m)
+        free = free.reshape(Np, STATES)
+        span, low = self.span, self.low
+        # Step j's physical states, j = 0..Np-1: j = 0 measured (no input effect), then predicted.
+        free_states = _before(span * np.asarray(y0, dtype=float) + low, span * free + low)
+        # e_ψ,k = e_ψ,0 + dt Σ_{j<k} (r_j − v̄ κ_j)
+        heading_free = heading_error_rad + dt * np.cumsum(free_states[:, 2] - v * curvature_per_m)
+        # e_y,k = e_y,0 + dt Σ_{j<k} (vy_j + v̄ e_ψ,j)
+        lateral_free = lateral_error_m + dt * np.cumsum(
+            free_states[:, 1] + v * _before(np.asarray(heading_error_rad), heading_free)
+        )
+        return np.column_stack([free, lateral_free, heading_free]).ravel()
 
 
 def _before(first: np.ndarray, later: np.ndarray) -> np.ndarray:

@@ -157,3 +157,14 @@ class Controller(Protocol):
         """The input u for measured state x at time t (s), and what the controller did;
         ``pose``: (X, Y, yaw) in the world frame (m, m, rad), where the run has a path."""
         ...
+
+
+@runtime_checkable
+class RealTimeIteration(Protocol):
+    """A controller whose step has two phases (acados's real-time iteration): ``prepare()``,
+    everything that does not need the next measurement, run before it arrives; then ``act``,
+    the feedback phase from the measurement to the input (``tracking.solve_time_ms``)."""
+
+    def prepare(self) -> None:
+        """Build the next step's problem before its measurement."""
+        ...

@@ -4,8 +4,13 @@
 
 - ``rmse``: {vx, vy, yaw_rate}, root-mean-square of state - reference over the run;
 - ``solve_time_ms``: {median, p99, max} of the controller's whole ``act`` call (lift, QP, input
-  recovery): what must fit in the control period;
-- ``deadline_misses``: steps whose ``act`` took longer than the control period;
+  recovery): with a real-time-iteration controller the feedback phase, from the measurement to
+  the input;
+- ``prepare_time_ms``: {median, p99, max} of its ``prepare`` call, run before each measurement
+  (:class:`~harness.core.contracts.RealTimeIteration`; zeros for a one-phase controller):
+  preparation plus feedback must fit in the control period;
+- ``deadline_misses``: steps whose ``act`` (and ``prepare``, where there is one) took longer
+  than the control period;
 - ``solver_failures``: steps where the controller fell back (``StepInfo.fallback``);
 - ``steps``: control steps run;
 - ``solve_paths``: how many steps each solve path answered (DE-MPC: unconstrained,
@@ -29,6 +34,7 @@ tabs: they are the result.
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -44,6 +50,7 @@ from harness.core.contracts import (
     STATE_NAMES,
     Controller,
     Plant,
+    RealTimeIteration,
     StepInfo,
 )
 from harness.core.reference_path import ReferencePath
@@ -95,16 +102,26 @@ def track(
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
         raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
     controller.reset(reference, path=path)
+    preparing = controller if isinstance(controller, RealTimeIteration) else None
+    prepare_s: list[float] = []
 
     def act(x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
-        return controller.act(x, t, pose=plant.pose if path is not None else None)
+        if preparing is not None:  # the preparation belongs to the period before the measurement
+            start = time.perf_counter()
+            preparing.prepare()
+            prepare_s.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        answer = controller.act(x, t, pose=plant.pose if path is not None else None)
+        feedback_s.append(time.perf_counter() - start)
+        return answer
+
+    feedback_s: list[float] = []
 
     loop = closed_loop(
         plant,
         act,
         len(reference),
         speed_mps=float(reference[0, 0]),
-        timed=True,
         keep_infos=True,
         delay_steps=COMPUTE_DELAYS[compute_delay],
     )
@@ -117,9 +134,15 @@ def track(
         loop.poses,
         reference,
         loop.predicted(),
-        loop.solve_time_s[:-1].copy(),
+        np.array(feedback_s[: len(loop.time_s) - 1]),
     )
     metrics = tracking_metrics(run, plant.dt, sum(info.fallback for info in infos))
+    if prepare_s:  # a period holds the step's feedback and the next one's preparation
+        prepare = np.array(prepare_s[: len(run.solve_time_s)])
+        metrics["deadline_misses"] = int(np.sum(run.solve_time_s + prepare > plant.dt))
+    else:
+        prepare = np.zeros(1)
+    metrics["prepare_time_ms"] = _statistics(prepare * 1e3)
     metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))
     metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
@@ -172,14 +195,19 @@ def tracking_metrics(run: TrackingTrajectory, dt: float, solver_failures: int) -
     return {
         "rmse": dict(zip(STATE_NAMES, rmse.tolist(), strict=True)),
         "final_error": dict(zip(STATE_NAMES, final.tolist(), strict=True)),
-        "solve_time_ms": {
-            "median": float(np.median(solve_ms)),
-            "p99": float(np.percentile(solve_ms, 99)),
-            "max": float(np.max(solve_ms)),
-        },
+        "solve_time_ms": _statistics(solve_ms),
         "deadline_misses": int(np.sum(run.solve_time_s > dt)),
         "solver_failures": int(solver_failures),
         "steps": len(run.solve_time_s),
+    }
+
+
+def _statistics(times_ms: np.ndarray) -> dict[str, float]:
+    """{median, p99, max} of step times (ms)."""
+    return {
+        "median": float(np.median(times_ms)),
+        "p99": float(np.percentile(times_ms, 99)),
+        "max": float(np.max(times_ms)),
     }
 
 

@@ -1,0 +1,88 @@
+"""The real-time iteration: DE-MPC prepares each step before its measurement and solves it after.
+
+``prepare()`` linearises the model along the shifted plan rolled out from the state the model
+predicts, and builds Θ, the Hessian and its factor; ``act`` adds the measured free response and
+solves. On a plant that is the controller's own model the prediction is the measurement (to
+rounding), so the two-phase loop gives the inputs of the one-phase step, which prepares along
+the measurement: the same QPs to rounding, whose optima agree to the solvers' tolerance. The
+free response built as one product for a small lift equals a step-by-step rollout, with and
+without a disturbance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from controllers import DEMPCConfig
+from controllers.condensed_qp import SMALL_LIFT, TimeVaryingQP
+from harness.evaluation.tracking import track
+from harness.recorder import Recorder
+from harness.references import DoubleLaneChange
+from tests.test_time_varying import SETTINGS, brute_force_outputs, random_time_varying
+from tests.toy_models import ModelPlant, feasible_reference, toy_bilinear_model, toy_linear_model
+
+TOL = DEMPCConfig().tol  # the solvers' tolerance, normalized units
+
+
+def _inputs(model, states, path=None, **settings):
+    """(metrics, normalized inputs) of a run tracking ``states`` on the model's own plant."""
+    plant = ModelPlant(model, x0=states[0])
+    config = DEMPCConfig(**settings)  # type: ignore[arg-type]
+    metrics, run = track(
+        plant, config(model, plant.dt), states, name="x", recorder=Recorder(), path=path
+    )
+    return metrics, model.normalizer_.inputs(run.inputs)
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {},
+        {"Np": 60, "Nc": 50},
+        {"offset_free": True},
+        {"sqp_iterations": 2},
+        {"compute_delay": "one_step"},
+    ],
+    ids=["10/7", "60/50", "offset-free", "two SQP iterations", "one_step delay"],
+)
+def test_the_two_phase_step_gives_the_one_phase_input_on_an_exact_model(settings) -> None:
+    model = toy_bilinear_model()
+    reference = feasible_reference(model, 300)
+    metrics, split = _inputs(model, reference, **settings)
+    _, one_phase = _inputs(model, reference, real_time_iteration=False, **settings)
+    assert metrics["prepare_time_ms"]["median"] > 0  # the loop ran the preparation
+    assert np.ptp(split[:, 0]) > 0.05  # it steers: the QPs are not trivial
+    np.testing.assert_allclose(split, one_phase, atol=10 * TOL)
+
+
+@pytest.mark.parametrize("model", [toy_bilinear_model(), toy_linear_model()], ids=["TV", "LTI"])
+def test_the_two_phase_path_follower_gives_the_one_phase_input(model) -> None:
+    """Following a path, the preparation predicts the pose a step on as well (the plant's
+    planar kinematics under the state) and builds the path QP's Θ for its speed band."""
+    path = DoubleLaneChange(speed_mps=20.0).course().path()
+    reference = np.tile([20.0, 0.0, 0.0], (300, 1))
+    settings = {"reference": "path", "Np": 30, "Nc": 20}
+    metrics, split = _inputs(model, reference, path, **settings)
+    _, one_phase = _inputs(model, reference, path, real_time_iteration=False, **settings)
+    assert metrics["follows_path"] and np.ptp(split[:, 0]) > 0.05
+    np.testing.assert_allclose(split, one_phase, atol=10 * TOL)
+
+
+@pytest.mark.parametrize("N", [5, SMALL_LIFT + 4], ids=["product", "loop"])
+def test_the_free_response_with_a_disturbance_equals_a_step_by_step_rollout(N: int) -> None:
+    """Both ways of building it (one product for a small lift, a loop for a large one)."""
+    A, B, d, C = random_time_varying(3, N=N)
+    qp = TimeVaryingQP(C, 2, **SETTINGS)
+    qp.set_model(A, B, d)
+    rng = np.random.default_rng(4)
+    z, v_prev, w = rng.normal(size=N), rng.uniform(0.3, 0.7, size=2), rng.normal(size=N)
+    zero = np.zeros((10, 2))
+    expected = brute_force_outputs(A, B, d, C, z, v_prev, zero).ravel()
+    np.testing.assert_allclose(qp.free_response(z, v_prev), expected, atol=1e-12)
+    qp.set_disturbance(w)
+    expected = brute_force_outputs(A, B, d + w, C, z, v_prev, zero).ravel()
+    np.testing.assert_allclose(qp.free_response(z, v_prev), expected, atol=1e-12)
+    qp.set_disturbance(None)
+    qp.set_model(A, B, d + w)  # the disturbance as part of d: the same outputs
+    np.testing.assert_allclose(qp.free_response(z, v_prev), expected, atol=1e-12)
