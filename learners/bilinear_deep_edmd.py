@@ -208,6 +208,9 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
     def _objective(self) -> _BilinearObjective:
         return _BilinearObjective(self)
 
+    def _sync_for_rollout(self, train: Sequence[Episode]) -> None:
+        self._after_training(train)  # the refit reads the parameters; it writes none of them
+
     def _after_training(self, train: Sequence[Episode]) -> None:
         super()._after_training(train)  # C_ and the trained A_, B_
         m, size = self.normalizer_.input_min.shape[0], self.A_.shape[0]

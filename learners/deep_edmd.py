@@ -49,7 +49,7 @@ from learners.base import (
 from learners.edmd import linear_rollout
 from learners.linalg import ridge_lstsq, row_chunks
 from learners.nets import Dense, LayerSpec, mlp_apply, mlp_backward, mlp_forward, mlp_specs
-from learners.trained import TrainedLearner
+from learners.trained import TrainedLearner, check_loss_scales
 from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
 __all__ = ["BilinearTerm", "DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
@@ -123,12 +123,14 @@ def deep_edmd_loss_terms(
     *,
     lifted_includes_state: bool,
     bilinear: BilinearTerm | None = None,
+    state_weights: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """The paper's L_ox, L_xx, L_xo, L_inf of windows x (B, p+1, n), v (B, p, m); batch means.
 
     Plain autograd, written to read like the equations (module docstring); it is the
     specification that :func:`deep_edmd_step` is tested against, and the validation loss.
-    ``bilinear`` puts the bilinear term into K^[i] z_0 (bilinear Deep EDMD).
+    ``bilinear`` puts the bilinear term into K^[i] z_0 (bilinear Deep EDMD). ``state_weights``
+    w (n,) weighs the state errors of L_ox and L_xx: sum_s w_s err_s^2 (ours; None: w = 1).
     """
     phi = mlp_apply(encoder, x)
     z = torch.cat([x, phi], -1) if lifted_includes_state else phi
@@ -137,9 +139,10 @@ def deep_edmd_loss_terms(
     recon_err = x_next - mlp_apply(decoder, z[:, 1:])
     pred_err = x_next - mlp_apply(decoder, z_pred)
     lift_err = z[:, 1:] - z_pred
+    w = torch.ones(x.shape[-1]) if state_weights is None else state_weights
     return {
-        "ox": (recon_err**2).sum(-1).mean(1).mean(),
-        "xx": (pred_err**2).sum(-1).mean(1).mean(),
+        "ox": (recon_err**2 * w).sum(-1).mean(1).mean(),
+        "xx": (pred_err**2 * w).sum(-1).mean(1).mean(),
         "xo": (lift_err**2).sum(-1).mean(1).mean(),
         "inf": (recon_err.abs().amax(-1).mean(1) + pred_err.abs().amax(-1).mean(1)).mean(),
     }
@@ -224,8 +227,11 @@ def deep_edmd_step(
     *,
     lifted_includes_state: bool,
     bilinear: BilinearTerm | None = None,
+    state_weights: torch.Tensor | None = None,
 ) -> float:
     """sum_k alpha_k L_k over the data terms, with its gradient ADDED into the grad views.
+
+    ``state_weights`` as in :func:`deep_edmd_loss_terms`.
 
     The same loss as :func:`deep_edmd_loss_terms`, computed for speed: time-major tensors, one
     encoder pass over all B (p+1) samples, K^[i] z_0 for all i by a log-depth scan with powers
@@ -260,7 +266,8 @@ def deep_edmd_step(
     lift_err = z[1:] - z_pred
     c_ox, c_xx = weights.ox / (batch * p), weights.xx / (batch * p)
     c_xo, c_inf = weights.xo / (batch * p), weights.inf / (batch * p)
-    squared = (err * err).sum(-1)
+    weighted = err * state_weights if state_weights is not None else err
+    squared = (err * weighted).sum(-1)
     peak, where = err.abs().max(-1)
     loss = (
         c_ox * squared[:p].sum()
@@ -270,7 +277,7 @@ def deep_edmd_step(
     )
     # backward: d loss / d decoder output, then through the decoder, A/B and the encoder
     coef = torch.cat([torch.full((p, 1, 1), -2.0 * c_ox), torch.full((p, 1, 1), -2.0 * c_xx)])
-    grad_d = err * coef
+    grad_d = weighted * coef
     where = where.unsqueeze(-1)
     grad_d.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
     grad_in = mlp_backward(decoder, acts_d, grad_d.view(-1, n)).view(2 * p, batch, size)
@@ -311,6 +318,7 @@ class _Objective:
         self.a, self.b = views["koopman.A.weight"], views["koopman.B.weight"]
         self.grad_a, self.grad_b = grads["koopman.A.weight"], grads["koopman.B.weight"]
         self.spans = (self.params.span("encoder"), self.params.span("decoder"))
+        self.state_weights = learner._state_weights_tensor()
 
     def _encoder(self, layer: Dense | None) -> list[Dense]:
         return self.encoder if layer is None else [*self.encoder[:-1], layer, self.encoder[-1]]
@@ -329,6 +337,7 @@ class _Objective:
             learner.alpha,
             lifted_includes_state=learner.lifted_includes_state,
             bilinear=self.bilinear,
+            state_weights=self.state_weights,
         )
         # alpha_5 ||theta_e||^2 + alpha_6 ||theta_d||^2: gradient 2 alpha theta, added exactly
         data, grad = self.params.data, self.params.grad
@@ -350,6 +359,7 @@ class _Objective:
                 v,
                 lifted_includes_state=self.learner.lifted_includes_state,
                 bilinear=self.bilinear,
+                state_weights=self.state_weights,
             )
         return batch_mean_terms(terms, self.learner.alpha.data_terms())
 
@@ -367,6 +377,8 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         prediction_output: ``decoder`` (paper) or ``linear`` (C_ z) for ``predict``.
         refit_koopman_lstsq: After training, replace A, B by the least-squares fit on the
             lifted training data (the paper's optional last step).
+        loss_scales: Weigh each state's squared error in L_ox, L_xx in units of its scale
+            (physical units, e.g. [0.2, 0.1, 0.05]; ours). None: the paper's normalized units.
         random_layer: ``enabled``, ``std`` of the extra encoder layer redrawn every step.
         training: :class:`~learners.training.TrainingConfig` keys.
     """
@@ -383,6 +395,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         alpha: LossWeights | Mapping[str, float] | None = None,
         prediction_output: str = "decoder",
         refit_koopman_lstsq: bool = False,
+        loss_scales: Sequence[float] | None = None,
         random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
         training: TrainingConfig | Mapping[str, Any] | None = None,
     ) -> None:
@@ -402,6 +415,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             "prediction_output", prediction_output, ("decoder", "linear")
         )
         self.refit_koopman_lstsq = bool(refit_koopman_lstsq)
+        self.loss_scales = check_loss_scales(loss_scales)
         self._random_layer_width = self.lifted_dim
         self._hyperparameters = {
             "lifted_dim": self.lifted_dim,
@@ -412,6 +426,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             "alpha": asdict(self.alpha),
             "prediction_output": self.prediction_output,
             "refit_koopman_lstsq": self.refit_koopman_lstsq,
+            "loss_scales": None if self.loss_scales is None else list(self.loss_scales),
             "random_layer": asdict(self.random_layer),
             "training": asdict(self.training),
         }
@@ -437,6 +452,15 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             encoder = [*encoder[:-1], layer, encoder[-1]]
         phi = mlp_apply(encoder, x_n)
         return torch.cat([x_n, phi], -1) if self.lifted_includes_state else phi
+
+    def _sync_for_rollout(self, train: Sequence[Episode]) -> None:
+        """A_, B_ (C_) as the fitted model will have them; with the refit, by least squares on
+        the lifted training data, leaving the trained A, B in the parameters untouched."""
+        self._read_matrices(train)
+        if self.refit_koopman_lstsq:
+            theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
+            size = theta.shape[1]
+            self.A_, self.B_ = theta[:size].T.copy(), theta[size:].T.copy()
 
     def _after_training(self, train: Sequence[Episode]) -> None:
         if self.refit_koopman_lstsq:

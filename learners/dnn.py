@@ -23,16 +23,16 @@ the region of its point. The controller reads a float64 NumPy copy of the networ
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from harness.core.episode import Episode
-from learners.base import check_int, check_nonnegative
+from learners.base import Shape, check_int, check_nonnegative
 from learners.nets import Dense, LayerSpec, NumpyMLP, mlp_apply, mlp_forward, mlp_specs
-from learners.trained import TrainedLearner
+from learners.trained import TrainedLearner, check_loss_scales
 from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
 __all__ = ["DNN", "DNNLossWeights", "dnn_loss_terms", "dnn_step"]
@@ -53,15 +53,29 @@ class DNNLossWeights:
 
 
 def dnn_loss_terms(
-    layers: Sequence[Dense], x: torch.Tensor, v: torch.Tensor, *, residual: bool
+    layers: Sequence[Dense],
+    x: torch.Tensor,
+    v: torch.Tensor,
+    *,
+    residual: bool,
+    increment_scale: torch.Tensor | None = None,
+    state_weights: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
-    """The data terms of L_mlp for windows x (B, p+1, n), v (B, p, m): batch means, autograd."""
+    """The data terms of L_mlp for windows x (B, p+1, n), v (B, p, m): batch means, autograd.
+
+    ``increment_scale`` D (n,): the residual step is x_hat + D * M (ours; None: D = 1).
+    ``state_weights`` w (n,): the squared error is sum_s w_s err_s^2 (ours; None: w = 1).
+    """
     x_hat, sq, peak = x[:, 0], [], []
     for i in range(v.shape[1]):
         step = mlp_apply(layers, torch.cat([x_hat, v[:, i]], -1))
+        if residual and increment_scale is not None:
+            step = step * increment_scale
         x_hat = x_hat + step if residual else step
         err = x[:, i + 1] - x_hat
-        sq.append((err**2).sum(-1))
+        sq.append(
+            (err**2 * state_weights).sum(-1) if state_weights is not None else (err**2).sum(-1)
+        )
         peak.append(err.abs().amax(-1))
     return {
         "prediction": torch.stack(sq, 1).mean(1).mean(),
@@ -76,8 +90,12 @@ def dnn_step(
     weights: DNNLossWeights,
     *,
     residual: bool,
+    increment_scale: torch.Tensor | None = None,
+    state_weights: torch.Tensor | None = None,
 ) -> float:
     """b_1 L_pred + b_2 L_inf, its gradient ADDED into the layers' grad views (BPTT by hand).
+
+    ``increment_scale`` and ``state_weights`` as in :func:`dnn_loss_terms`.
 
     The same loss as :func:`dnn_loss_terms`, computed for speed: the input half of the first
     layer (W_u v_i + b for every step) is one matmul; each step's activations are written into
@@ -102,12 +120,16 @@ def dnn_step(
         for layer, out in zip(layers[1:], acts[1:], strict=True):
             a = torch.addmm(layer.bias, a, layer.weight.t(), out=out[i])
             _activate_(a, layer.activation)
-        x_hat = x_hat + a if residual else a
+        if residual:
+            x_hat = x_hat + (a * increment_scale if increment_scale is not None else a)
+        else:
+            x_hat = a
     err = x[1:] - torch.cat([fed[1:], x_hat.unsqueeze(0)])  # predictions x_hat_1 .. x_hat_p
     c_sq, c_inf = weights.prediction / (batch * p), weights.inf / (batch * p)
     peak, where = err.abs().max(-1)
-    loss = c_sq * (err * err).sum() + c_inf * peak.sum()
-    grad_err = err * (-2.0 * c_sq)  # d loss / d x_hat_{i+1}
+    weighted = err * state_weights if state_weights is not None else err
+    loss = c_sq * (err * weighted).sum() + c_inf * peak.sum()
+    grad_err = weighted * (-2.0 * c_sq)  # d loss / d x_hat_{i+1}
     where = where.unsqueeze(-1)
     grad_err.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
     pre = [torch.empty_like(a) for a in acts]  # d loss / d pre-activation, per layer and step
@@ -115,6 +137,8 @@ def dnn_step(
     for i in range(p - 1, -1, -1):
         g = grad_err[i] + carry  # total d loss / d x_hat_{i+1}
         top = g
+        if residual and increment_scale is not None:
+            g = g * increment_scale  # d loss / d M
         for k in range(len(layers) - 1, -1, -1):
             _activation_backward(g, acts[k][i], layers[k].activation, out=pre[k][i])
             g = pre[k][i] @ (layers[k].weight if k else w_x)
@@ -163,6 +187,8 @@ class _Objective:
         self.learner = learner
         self.params = learner.params_
         self.layers = self.params.layers("model")
+        self.scale = learner._increment_scale_tensor()
+        self.state_weights = learner._state_weights_tensor()
 
     def _layers(self, layer: Dense | None) -> list[Dense]:
         return self.layers if layer is None else [*self.layers[:-1], layer, self.layers[-1]]
@@ -170,7 +196,13 @@ class _Objective:
     def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
         learner = self.learner
         loss = dnn_step(
-            self._layers(learner._step_layer(step)), x, v, learner.beta, residual=learner.residual
+            self._layers(learner._step_layer(step)),
+            x,
+            v,
+            learner.beta,
+            residual=learner.residual,
+            increment_scale=self.scale,
+            state_weights=self.state_weights,
         )
         if learner.beta.l2:  # beta_3 ||theta||^2: gradient 2 beta_3 theta
             self.params.grad.add_(self.params.data, alpha=2.0 * learner.beta.l2)
@@ -178,7 +210,14 @@ class _Objective:
 
     def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
         with torch.no_grad():
-            terms = dnn_loss_terms(self.layers, x, v, residual=self.learner.residual)
+            terms = dnn_loss_terms(
+                self.layers,
+                x,
+                v,
+                residual=self.learner.residual,
+                increment_scale=self.scale,
+                state_weights=self.state_weights,
+            )
         beta = self.learner.beta
         return batch_mean_terms(terms, {"prediction": beta.prediction, "inf": beta.inf})
 
@@ -190,7 +229,13 @@ class DNN(TrainedLearner):
         hidden: Hidden widths (paper: 32, 64, 128, 128, 64, 32).
         horizon: p, the steps of every training window.
         beta: Loss weights prediction, inf, l2 (the paper's beta_1..3).
-        residual: Predict x_{k+1} - x_k instead of x_{k+1} (not in the paper; off by default).
+        residual: Predict x_{k+1} = x_k + D * M(x_k, u_k) (ours; off in the paper): D (n,) is
+            the std of the training drives' one-step increments (normalized), so M's outputs
+            are of order one, and M's last layer starts at zero (the model starts as x_{k+1} =
+            x_k).
+        loss_scales: Weigh each state's squared error in units of its scale (physical units,
+            e.g. [0.2, 0.1, 0.05] for vx m/s, vy m/s, r rad/s; ours). None: the paper's
+            normalized units.
         random_layer: ``enabled``, ``std`` of the extra layer (before the output layer) redrawn
             every step.
         training: :class:`~learners.training.TrainingConfig` keys.
@@ -206,6 +251,7 @@ class DNN(TrainedLearner):
         horizon: int = 41,
         beta: DNNLossWeights | Mapping[str, float] | None = None,
         residual: bool = False,
+        loss_scales: Sequence[float] | None = None,
         random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
         training: TrainingConfig | Mapping[str, Any] | None = None,
     ) -> None:
@@ -215,18 +261,38 @@ class DNN(TrainedLearner):
             raise ValueError("learner.hidden must list at least one width (got [])")
         self.beta = block(DNNLossWeights, beta, "beta")
         self.residual = bool(residual)
+        self.loss_scales = check_loss_scales(loss_scales)
         self._random_layer_width = self.hidden[-1]
         self._hyperparameters = {
             "hidden": list(self.hidden),
             "horizon": self.horizon,
             "beta": asdict(self.beta),
             "residual": self.residual,
+            "loss_scales": None if self.loss_scales is None else list(self.loss_scales),
             "random_layer": asdict(self.random_layer),
             "training": asdict(self.training),
         }
 
     def _specs(self, n: int, m: int) -> list[LayerSpec]:
-        return mlp_specs("model", [n + m, *self.hidden, n], "linear")
+        specs = mlp_specs("model", [n + m, *self.hidden, n], "linear")
+        if self.residual:  # start as x_{k+1} = x_k
+            specs[-1] = replace(specs[-1], init="zero")
+        return specs
+
+    def _before_training(self, train: Sequence[Episode]) -> None:
+        n = self.normalizer_.state_min.shape[0]
+        if self.residual:
+            steps = np.concatenate(
+                [np.diff(self.normalizer_.states(e.states), axis=0) for e in train]
+            )
+            self.increment_scale_ = np.maximum(steps.std(axis=0), 1e-8)
+        else:
+            self.increment_scale_ = np.ones(n)
+
+    def _increment_scale_tensor(self) -> torch.Tensor | None:
+        if not self.residual:
+            return None
+        return torch.from_numpy(self.increment_scale_.astype(np.float32))
 
     def _objective(self) -> _Objective:
         return _Objective(self)
@@ -237,17 +303,34 @@ class DNN(TrainedLearner):
             layers = [*layers[:-1], layer, layers[-1]]
         out = torch.empty(x0.shape[0], v.shape[1] + 1, x0.shape[1])
         out[:, 0] = x_hat = x0
+        scale = self._increment_scale_tensor()
         for k in range(v.shape[1]):
             step = mlp_forward(layers, torch.cat([x_hat, v[:, k]], -1))[-1]
-            x_hat = x_hat + step if self.residual else step
+            x_hat = x_hat + step * scale if scale is not None else step
             out[:, k + 1] = x_hat
         return out
 
     def _after_training(self, train: Sequence[Episode]) -> None:
         self._for_control()
 
+    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
+        state = super()._state()
+        if self.residual:
+            state["increment_scale"] = self.increment_scale_
+        return state
+
+    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
+        shapes = super()._state_shapes(n, m)
+        if self.residual:
+            shapes["increment_scale"] = (n,)
+        return shapes
+
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         super()._set_state(state)
+        n = self.normalizer_.state_min.shape[0]
+        self.increment_scale_ = (
+            state["increment_scale"].double().numpy().copy() if self.residual else np.ones(n)
+        )
         self._for_control()
 
     def _for_control(self) -> None:
@@ -264,12 +347,14 @@ class DNN(TrainedLearner):
 
     def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         out = self._mlp(z, v)
-        return z + out if self.residual else out
+        return z + self.increment_scale_ * out if self.residual else out
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         out, A, B = self._mlp.jacobian(z, v)
-        if self.residual:  # z⁺ = z + M(z, v)
-            out = out + z
-            A = A + np.eye(z.shape[1])
+        if self.residual:  # z⁺ = z + D M(z, v)
+            scale = self.increment_scale_
+            out = z + scale * out
+            A = np.eye(z.shape[1]) + scale[:, None] * A
+            B = scale[:, None] * B
         d = out - (A @ z[:, :, None])[:, :, 0] - (B @ v[:, :, None])[:, :, 0]
         return A, B, d

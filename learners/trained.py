@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Self
 
@@ -21,13 +21,45 @@ from learners.base import (
     Shape,
     check_fit_data,
     check_int,
+    check_positive,
     check_rollout_args,
 )
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
 from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, block
 from learners.windows import WindowData
 
-__all__ = ["TrainedLearner"]
+__all__ = ["TrainedLearner", "check_loss_scales", "state_loss_weights"]
+
+
+def check_loss_scales(scales: Sequence[float] | None) -> tuple[float, ...] | None:
+    """``learner.loss_scales``: None (the paper: errors in normalized units) or one positive
+    scale per state in its physical unit."""
+    if scales is None:
+        return None
+    if isinstance(scales, str) or not isinstance(scales, Sequence) or not scales:
+        raise ValueError(
+            f"learner.loss_scales must be null or a list of positive numbers, one per state "
+            f"(got {scales!r})"
+        )
+    return tuple(check_positive("loss_scales", value) for value in scales)
+
+
+def state_loss_weights(
+    normalizer: MinMaxNormalizer, scales: Sequence[float] | None
+) -> torch.Tensor | None:
+    """Per-state weights w of squared normalized errors so that the loss weighs each state's
+    error in units of its scale: w_s proportional to (span_s / scale_s)^2, mean 1 (so the
+    other loss terms keep their balance). None without scales."""
+    if scales is None:
+        return None
+    span = normalizer.state_max - normalizer.state_min
+    if len(scales) != len(span):
+        raise ValueError(
+            f"learner.loss_scales has {len(scales)} entries; the data has {len(span)} states "
+            f"(give one scale per state, in its unit)"
+        )
+    w = (np.where(span > 1e-12, span, 1.0) / np.asarray(scales, float)) ** 2
+    return torch.from_numpy((w / w.mean()).astype(np.float32))
 
 # Settings that may change between a run and its resumption without changing the result.
 _RESUMABLE = (
@@ -54,6 +86,7 @@ class TrainedLearner(Learner):
     params_: FlatParameters
     history_: History
     checkpoint_dir: Path | None
+    loss_scales: tuple[float, ...] | None = None  # set by a subclass that weighs its states
 
     def __init__(
         self,
@@ -77,6 +110,9 @@ class TrainedLearner(Learner):
     def _objective(self) -> Objective:
         """The loss the training loop minimizes, bound to ``params_``."""
 
+    def _before_training(self, train: Sequence[Episode]) -> None:
+        """Set what the network and its loss need of the data (``normalizer_`` is set)."""
+
     def _after_training(self, train: Sequence[Episode]) -> None:
         """Set the remaining fitted attributes once ``params_`` hold the trained weights."""
 
@@ -99,6 +135,7 @@ class TrainedLearner(Learner):
         check_fit_data(train, validation, normalizer, self.name)
         self.normalizer_ = normalizer
         n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
+        self._before_training(train)
         self._build(n, m)
         generator = torch.Generator().manual_seed(self.training.seed)
         self.params_.initialize(generator)
@@ -115,9 +152,49 @@ class TrainedLearner(Learner):
             self.training,
             fingerprint={"hyperparameters": fingerprint},
             checkpoint_path=self.checkpoint_path,
+            rollout_score=self._rollout_scorer(train, validation) if validation else None,
         )
         self._after_training(train)
         return self
+
+    def _state_weights_tensor(self) -> torch.Tensor | None:
+        """The loss's per-state weights (:func:`state_loss_weights`), None without scales."""
+        if self.loss_scales is None:
+            return None
+        return state_loss_weights(self.normalizer_, self.loss_scales)
+
+    def _sync_for_rollout(self, train: Sequence[Episode]) -> None:
+        """Make ``predict`` use the parameters as they are now (mid-training)."""
+
+    def _rollout_scorer(
+        self, train: Sequence[Episode], validation: Sequence[Episode]
+    ) -> Callable[[], dict[str, float]]:
+        """The score ``selection: rollout`` keeps checkpoints by: each validation drive predicted
+        open loop from its first state (what the prediction tables do), RMSE per state in
+        physical units over ``training.rollout_scales``, averaged over states and drives.
+        ``rollout_rmse_<i>`` is state i's RMSE averaged over the drives; inf where one diverged."""
+        scales = np.asarray(self.training.rollout_scales, float)
+        n = self.normalizer_.state_min.shape[0]
+        if scales.shape != (n,):
+            raise ValueError(
+                f"learner.training.rollout_scales has {scales.size} entries; the data has {n} "
+                f"states (give one scale per state, in its unit)"
+            )
+
+        def score() -> dict[str, float]:
+            self._sync_for_rollout(train)
+            rmse = np.zeros((len(validation), n))
+            with np.errstate(over="ignore", invalid="ignore"):
+                for i, e in enumerate(validation):
+                    predicted = self.predict(e.states[0], e.inputs[:-1])
+                    # rows 1.. (row 0 is given), as the prediction tables count them
+                    rmse[i] = np.sqrt(np.mean((predicted[1:] - e.states[1:]) ** 2, axis=0))
+            rmse = np.where(np.isfinite(rmse), rmse, np.inf)
+            out = {loop.ROLLOUT_SCORE: float(np.mean(rmse / scales))}
+            out.update({f"rollout_rmse_{j}": float(v) for j, v in enumerate(rmse.mean(0))})
+            return out
+
+        return score
 
     @property
     def redraws_random_layer(self) -> bool:

@@ -15,8 +15,16 @@ What the loop guarantees:
   moved aside to ``<name>.ckpt.damaged`` and training starts afresh (a damaged file cannot be
   resumed from, and the run it belongs to is this one).
 - **Never a silent NaN model.** A non-finite loss stops training with a one-line RuntimeError.
-- **Early stopping** on the validation loss every ``eval_every_steps``; the returned model is the
-  best one seen (the last one when there is no validation data).
+- **Early stopping** every ``eval_every_steps`` on what ``selection`` names: the validation
+  windows' loss (``window_loss``, the paper's) or the open-loop rollout of the whole validation
+  drives, scored in physical units (``rollout``, what the tables and the controller use; the
+  learner supplies the score). The returned model is the best one seen by that measure (the
+  last one when there is no validation data); the window loss stays in the history either way.
+- **Schedules are functions of the step**, so a resumed run sees the same ones: the learning
+  rate (``lr_schedule``: constant, or linear warm-up then cosine decay to ``lr_final``), the
+  window length (``curriculum``: [[p, steps], ...] phases before the learner's own p), and the
+  noise drawn onto each window's initial state (``initial_state_noise``, from
+  ``numpy.random.default_rng([seed, step, 1])``).
 
 The loss curves (:class:`History`) are returned, not drawn: figures and recordings are the
 caller's (``harness/evaluation/training_report.py``).
@@ -32,7 +40,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -42,7 +50,7 @@ import torch
 from tqdm import tqdm
 
 from harness.core.files import write_atomic
-from learners.base import check, check_int, check_nonnegative, check_positive
+from learners.base import check, check_choice, check_int, check_nonnegative, check_positive
 from learners.nets import FlatParameters
 from learners.windows import WindowData
 
@@ -57,6 +65,9 @@ __all__ = [
 ]
 
 VALIDATION_CHUNK = 1024  # windows per validation forward pass
+SELECTIONS = ("window_loss", "rollout")  # what early stopping and the kept checkpoint go by
+LR_SCHEDULES = ("constant", "cosine")
+ROLLOUT_SCORE = "rollout_score"  # the key of the rollout measure in History.validation
 # A checkpoint is torch.save's bytes, then this marker, the hex SHA-256 of those bytes and "\n".
 _CHECKSUM_MARKER = b"\nkoopman-harness checkpoint sha256 "
 _TRAILER_BYTES = len(_CHECKSUM_MARKER) + 64 + 1
@@ -70,9 +81,17 @@ _Block = TypeVar("_Block")
 class TrainingConfig:
     """Optimizer and budget of a trained learner: the schema of ``learner.training``.
 
-    Paper values: Adam, lr 1e-4, batch 64, ~1e5 batches. ``max_epochs`` None means no epoch
-    limit; at least one of ``max_steps`` / ``max_epochs`` must be set. ``num_threads`` None uses
-    :func:`default_threads`.
+    Paper values: Adam, lr 1e-4, batch 64, ~1e5 batches, and (the defaults here) a constant
+    rate, no clipping, no curriculum, no noise, checkpoints chosen by the window loss.
+    ``max_epochs`` None means no epoch limit; at least one of ``max_steps`` / ``max_epochs``
+    must be set. ``num_threads`` None uses :func:`default_threads`.
+
+    Ours (not in the paper): ``selection: rollout`` keeps the checkpoint whose open-loop
+    rollout of the validation drives has the lowest mean over drives and states of
+    RMSE / ``rollout_scales`` (physical units: m/s, m/s, rad/s for vx, vy, r); ``lr_schedule:
+    cosine`` warms up linearly over ``warmup_steps`` and decays to ``lr_final`` at ``max_steps``;
+    ``grad_clip_norm`` clips the gradient's 2-norm; ``curriculum`` trains on shorter windows
+    first; ``initial_state_noise`` (normalized units) perturbs each window's first state.
     """
 
     batch_size: int = 64
@@ -85,6 +104,14 @@ class TrainingConfig:
     seed: int = 0
     num_threads: int | None = None
     progress: bool = True
+    selection: str = "window_loss"
+    rollout_scales: Sequence[float] = (1.0, 0.1, 0.05)
+    lr_schedule: str = "constant"
+    warmup_steps: int = 0
+    lr_final: float = 0.0
+    grad_clip_norm: float | None = None
+    curriculum: Sequence[Sequence[int]] | None = None
+    initial_state_noise: float = 0.0
 
     def __post_init__(self) -> None:
         key = "training."
@@ -107,6 +134,67 @@ class TrainingConfig:
         if self.num_threads is not None:
             check_int(key + "num_threads", self.num_threads, 1)
         check(isinstance(self.progress, bool), key + "progress", "true or false", self.progress)
+        check_choice(key + "selection", self.selection, SELECTIONS)
+        scales = self.rollout_scales
+        check(
+            isinstance(scales, Sequence) and not isinstance(scales, str) and len(scales) > 0,
+            key + "rollout_scales",
+            "a list of positive numbers, one per state",
+            scales,
+        )
+        for scale in scales:
+            check_positive(key + "rollout_scales", scale)
+        object.__setattr__(self, "rollout_scales", tuple(float(x) for x in scales))
+        check_choice(key + "lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        check_int(key + "warmup_steps", self.warmup_steps, 0)
+        check_nonnegative(key + "lr_final", self.lr_final)
+        check(
+            self.lr_schedule == "constant" or self.max_steps is not None,
+            key + "max_steps",
+            "set when training.lr_schedule is cosine (the decay ends there)",
+            self.max_steps,
+        )
+        if self.grad_clip_norm is not None:
+            check_positive(key + "grad_clip_norm", self.grad_clip_norm)
+        check_nonnegative(key + "initial_state_noise", self.initial_state_noise)
+        if self.curriculum is not None:
+            phases = []
+            for phase in self.curriculum:
+                check(
+                    isinstance(phase, Sequence) and not isinstance(phase, str) and len(phase) == 2,
+                    key + "curriculum",
+                    "a list of [p, steps] pairs",
+                    self.curriculum,
+                )
+                phases.append(
+                    (
+                        check_int(key + "curriculum p", phase[0], 1),
+                        check_int(key + "curriculum steps", phase[1], 1),
+                    )
+                )
+            object.__setattr__(self, "curriculum", tuple(phases))
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of training step ``step`` (0-based)."""
+        if self.lr_schedule == "constant":
+            return self.lr
+        if step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        assert self.max_steps is not None  # checked in __post_init__
+        span = max(1, self.max_steps - self.warmup_steps)
+        progress = min(1.0, (step - self.warmup_steps) / span)
+        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (
+            1.0 + math.cos(math.pi * progress)
+        )
+
+    def horizon_at(self, step: int, horizon: int) -> int:
+        """The window length of training step ``step``: the curriculum's phase, then ``horizon``."""
+        end = 0
+        for p, steps in self.curriculum or ():
+            end += steps
+            if step < end:
+                return p
+        return horizon
 
 
 @dataclass(frozen=True)
@@ -182,16 +270,23 @@ def train(
     *,
     fingerprint: Mapping[str, Any],
     checkpoint_path: Path | None = None,
+    rollout_score: Callable[[], dict[str, float]] | None = None,
 ) -> History:
     """Train ``objective.params`` in place with Adam; leaves the best parameters in them.
 
     With ``checkpoint_path``, resumes from it when it exists and keeps it current.
+    ``rollout_score`` (needed by ``selection: rollout``) scores the current parameters by
+    open-loop rollouts of the validation drives: a dict with :data:`ROLLOUT_SCORE` (lower is
+    better; inf where a rollout diverged) and any per-state terms to keep in the history.
     """
-    train_starts = train_data.window_starts(horizon)
-    if len(train_starts) == 0:
-        raise ValueError(
-            f"learner.horizon ({horizon}) is longer than every training episode (no window fits)"
-        )
+    for p in {horizon, *(p for p, _ in config.curriculum or ())}:
+        if len(train_data.window_starts(p)) == 0:
+            raise ValueError(
+                f"a training window of {p} steps (learner.horizon or training.curriculum) is "
+                f"longer than every training episode (no window fits)"
+            )
+    if config.selection == "rollout" and validation_data is not None and rollout_score is None:
+        raise ValueError(f"{name}: training.selection is rollout but no rollout score was given")
     val_starts = (
         validation_data.window_starts(horizon) if validation_data is not None else np.zeros(0)
     )
@@ -221,13 +316,18 @@ def train(
             )
 
     def validation_loss() -> dict[str, float]:
+        if not len(val_starts):
+            return {}
         totals: dict[str, float] = {}
         for i in range(0, len(val_starts), VALIDATION_CHUNK):
             chunk = val_starts[i : i + VALIDATION_CHUNK]
             x, v = validation_data.gather(chunk, horizon)
             for key, value in objective.validate(x, v).items():
                 totals[key] = totals.get(key, 0.0) + value * len(chunk)
-        return {k: v / len(val_starts) for k, v in totals.items()}
+        out = {k: v / len(val_starts) for k, v in totals.items()}
+        if config.selection == "rollout" and rollout_score is not None:
+            out.update(rollout_score())
+        return out
 
     def save_checkpoint() -> None:
         if checkpoint_path is not None:
@@ -250,14 +350,23 @@ def train(
         ) as bar,
     ):
         while budget_left() and not state.stopped:
+            # An epoch's windows have the length of its first step (resumed: step - batches).
+            p = config.horizon_at(state.step - state.batch_in_epoch, horizon)
             rng = np.random.default_rng([config.seed, state.epoch])
-            offsets = rng.integers(0, horizon + 1, len(train_data.episode_lengths))
-            starts = train_data.window_starts(horizon, offsets)
+            offsets = rng.integers(0, p + 1, len(train_data.episode_lengths))
+            starts = train_data.window_starts(p, offsets)
             order = rng.permutation(len(starts))
             batch = min(config.batch_size, len(starts))
             n_batches = len(starts) // batch  # the last partial batch is dropped
             for b in range(state.batch_in_epoch, n_batches):
-                x, v = train_data.gather(starts[order[b * batch : (b + 1) * batch]], horizon)
+                x, v = train_data.gather(starts[order[b * batch : (b + 1) * batch]], p)
+                if config.initial_state_noise:
+                    noise = np.random.default_rng([config.seed, state.step, 1]).standard_normal(
+                        (x.shape[0], x.shape[2])
+                    )
+                    x[:, 0] += torch.from_numpy(
+                        (config.initial_state_noise * noise).astype(np.float32)
+                    )
                 params.grad.zero_()
                 loss = objective.train_step(x, v, state.step)
                 if not math.isfinite(loss):
@@ -265,6 +374,9 @@ def train(
                         f"{name} training diverged at step {state.step} (loss = {loss}); "
                         f"lower learner.training.lr or check the data"
                     )
+                if config.grad_clip_norm is not None:
+                    torch.nn.utils.clip_grad_norm_([flat], config.grad_clip_norm)
+                optimizer.param_groups[0]["lr"] = config.lr_at(state.step)
                 optimizer.step()
                 state.step += 1
                 state.batch_in_epoch = b + 1
@@ -272,18 +384,22 @@ def train(
                 state.train_count += 1
                 bar.update(1)
                 if state.step % config.eval_every_steps == 0:
-                    state.evaluate(validation_loss() if len(val_starts) else {}, params, config)
+                    state.evaluate(validation_loss(), params, config)
                     bar.set_postfix(state.postfix(), refresh=False)
                 if state.step % config.checkpoint_every_steps == 0:
                     save_checkpoint()
                 if state.stopped or not budget_left():
+                    break
+                if config.horizon_at(state.step, horizon) != p:  # the next phase: a new epoch
+                    state.epoch += 1
+                    state.batch_in_epoch = 0
                     break
             else:
                 state.epoch += 1
                 state.batch_in_epoch = 0
         if state.train_count or not state.history.step:  # evaluate the last, off-grid steps
             final = _State.from_state(state)
-            final.evaluate(validation_loss() if len(val_starts) else {}, params, config)
+            final.evaluate(validation_loss(), params, config)
             history = final.history
             best = final.best_params
         else:
@@ -341,7 +457,10 @@ class _State:
         loss = validation["loss"]
         if not math.isfinite(loss):
             raise RuntimeError(f"validation loss is {loss} at step {self.step}: training diverged")
-        if loss < self.best_loss:
+        if config.selection == "rollout":  # a diverging rollout is not an improvement
+            loss = validation.get(ROLLOUT_SCORE, math.inf)
+            loss = loss if math.isfinite(loss) else math.inf
+        if loss < self.best_loss or self.best_params is None:
             self.best_loss, self.evals_since_best = loss, 0
             self.best_params = params.data.clone()
         else:
@@ -351,8 +470,11 @@ class _State:
 
     def postfix(self) -> dict[str, str]:
         out = {"train": f"{self.history.train[-1]:.3g}"}
-        if self.history.validation[-1]:
-            out["val"] = f"{self.history.validation[-1]['loss']:.3g}"
+        last = self.history.validation[-1]
+        if last:
+            out["val"] = f"{last['loss']:.3g}"
+            if ROLLOUT_SCORE in last:
+                out["rollout"] = f"{last[ROLLOUT_SCORE]:.3g}"
         return out
 
     def save(

@@ -143,6 +143,7 @@ def autograd_objective(learner, x, v, step):
             x,
             v,
             lifted_includes_state=learner.lifted_includes_state,
+            state_weights=learner._state_weights_tensor(),
         )
         alpha = learner.alpha
         loss = sum(w * terms[k] for k, w in alpha.data_terms().items())
@@ -155,7 +156,14 @@ def autograd_objective(learner, x, v, step):
         layers = params.layers("model", leaf)
         if layer is not None:
             layers = [*layers[:-1], layer, layers[-1]]
-        terms = dnn_loss_terms(layers, x, v, residual=learner.residual)
+        terms = dnn_loss_terms(
+            layers,
+            x,
+            v,
+            residual=learner.residual,
+            increment_scale=learner._increment_scale_tensor(),
+            state_weights=learner._state_weights_tensor(),
+        )
         loss = learner.beta.prediction * terms["prediction"] + learner.beta.inf * terms["inf"]
         objective = loss + learner.beta.l2 * leaf.square().sum()
     (grad,) = torch.autograd.grad(objective, leaf)
@@ -170,13 +178,28 @@ def autograd_objective(learner, x, v, step):
         lambda: DeepEDMD(random_layer={"enabled": True, "std": 0.3}),
         lambda: DNN(beta={"inf": 0.1, "l2": 0.01}),
         lambda: DNN(residual=True, random_layer={"enabled": True, "std": 0.3}),
+        lambda: DeepEDMD(alpha={"inf": 0.1}, loss_scales=[0.2, 0.1, 0.05]),
+        lambda: DNN(residual=True, beta={"inf": 0.1}, loss_scales=[0.2, 0.1, 0.05]),
     ],
-    ids=["deep_edmd", "deep_edmd_phi_only", "deep_edmd_random", "dnn", "dnn_residual_random"],
+    ids=[
+        "deep_edmd",
+        "deep_edmd_phi_only",
+        "deep_edmd_random",
+        "dnn",
+        "dnn_residual_random",
+        "deep_edmd_state_weights",
+        "dnn_residual_scaled_state_weights",
+    ],
 )
 def test_the_hand_written_gradients_equal_autograd_on_the_paper_loss(make) -> None:
-    """Paper-sized networks, p = 12, with every loss term and regularizer switched on."""
+    """Paper-sized networks, p = 12, with every loss term and regularizer switched on (and ours:
+    per-state weights, the residual's increment scale D)."""
     learner = make()
     learner._build(3, 2)
+    learner.normalizer_ = MinMaxNormalizer(
+        np.zeros(3), np.array([30.0, 2.0, 1.0]), np.zeros(2), np.ones(2)
+    )
+    learner.increment_scale_ = np.array([0.01, 0.002, 0.03])
     learner.params_.initialize(torch.Generator().manual_seed(0))
     generator = torch.Generator().manual_seed(1)
     x = torch.rand(16, 13, 3, generator=generator)
@@ -653,3 +676,186 @@ def test_a_model_file_from_before_bilinear_training_loads_as_trained_then() -> N
     learner = BilinearDeepEDMD.from_hyperparameters(old)
     assert not learner.bilinear_training and learner.bilinear_refit == "lstsq"
     assert BilinearDeepEDMD().bilinear_training  # a new model trains through H
+
+
+# -- ours: selection by rollout, schedules, per-state weights, the scaled residual --------------
+
+RECIPE = {
+    "selection": "rollout",
+    "lr_schedule": "cosine",
+    "warmup_steps": 4,
+    "lr_final": 1e-4,
+    "grad_clip_norm": 0.5,
+    "curriculum": [[3, 7], [5, 6]],
+    "initial_state_noise": 0.01,
+}
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_rollout_selection_keeps_the_checkpoint_that_predicts_the_validation_drives_best(
+    cls, data: dict
+) -> None:
+    from harness.evaluation.prediction import open_loop, rmse
+
+    learner = small(cls, training={**RECIPE, "lr": 3e-2}, loss_scales=[0.2, 0.1, 0.05])
+    learner.fit(data["train"], data["validation"], data["normalizer"])
+    scores = [v["rollout_score"] for v in learner.history_.validation]
+    assert len(scores) == 3 and len(set(scores)) > 1  # every 10 of 30 steps, and it moved
+    # the score of the fitted model, recomputed directly as the prediction tables compute it
+    scales = np.array(RECIPE_SCALES)
+    direct = [
+        np.array(list(rmse(open_loop(learner, e), e.states).values())) / scales
+        for e in data["validation"]
+    ]
+    assert float(np.mean(direct)) == pytest.approx(min(scores), rel=1e-6)
+    scorer = learner._rollout_scorer(data["train"], data["validation"])
+    assert scorer()["rollout_score"] == pytest.approx(min(scores), rel=1e-6)
+
+
+RECIPE_SCALES = TrainingConfig().rollout_scales
+
+
+def test_the_kept_checkpoint_is_the_best_by_rollout_not_by_window_loss() -> None:
+    """A planted sequence: rollout scores 5, 3, 4, 1, 2, 2.5 at the six evaluations while the
+    window loss falls at every one; each selection keeps its own best checkpoint."""
+    from learners import training as loop
+    from learners.nets import FlatParameters, LayerSpec
+
+    params = FlatParameters([LayerSpec("w", 1, 1, "linear", bias=False)])
+    at_evaluation: list[float] = []  # the parameter at each evaluation
+
+    class Objective:
+        def __init__(self) -> None:
+            self.params = params
+
+        def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
+            params.grad.fill_(1.0)  # Adam moves the weight by lr every step
+            return 1.0
+
+        def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
+            at_evaluation.append(float(params.data[0]))
+            return {"loss": 1.0 / len(at_evaluation)}
+
+    windows = WindowData(torch.rand(40, 1), torch.rand(40, 1), np.array([0]), np.array([40]))
+    for selection, kept in (("rollout", 3), ("window_loss", 5)):
+        params.data.zero_()
+        at_evaluation.clear()
+        planted = iter([5.0, 3.0, 4.0, 1.0, 2.0, 2.5])
+        config = TrainingConfig(
+            batch_size=2,
+            lr=0.1,
+            max_steps=6,
+            eval_every_steps=1,
+            patience=10,
+            progress=False,
+            selection=selection,
+        )
+        history = loop.train(
+            "planted",
+            Objective(),
+            windows,
+            windows,
+            3,
+            config,
+            fingerprint={},
+            rollout_score=lambda planted=planted: {"rollout_score": next(planted)},
+        )
+        assert len(at_evaluation) == 6 and len(set(at_evaluation)) == 6
+        assert float(params.data[0]) == pytest.approx(at_evaluation[kept])
+        assert all("loss" in v for v in history.validation)  # the window loss is kept either way
+        assert ("rollout_score" in history.validation[0]) == (selection == "rollout")
+
+
+def test_schedules_are_functions_of_the_step() -> None:
+    config = TrainingConfig(
+        lr=1e-3,
+        lr_schedule="cosine",
+        warmup_steps=10,
+        lr_final=1e-5,
+        max_steps=110,
+        curriculum=[[10, 5], [50, 20]],
+    )
+    assert config.lr_at(0) == pytest.approx(1e-4) and config.lr_at(9) == pytest.approx(1e-3)
+    assert config.lr_at(60) == pytest.approx(1e-5 + 0.5 * (1e-3 - 1e-5))  # half-way: cos = 0
+    assert config.lr_at(110) == pytest.approx(1e-5)
+    assert [config.horizon_at(s, 200) for s in (0, 4, 5, 24, 25, 1000)] == [
+        10,
+        10,
+        50,
+        50,
+        200,
+        200,
+    ]
+    assert TrainingConfig(lr=2e-4).lr_at(12345) == 2e-4  # the paper's constant rate
+
+
+@pytest.mark.parametrize("cls", [DNN, DeepEDMD])
+def test_a_killed_run_with_every_schedule_resumes_to_the_uninterrupted_result(
+    cls, data: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    args = (data["train"], data["validation"], data["normalizer"])
+    whole = small(cls, tmp_path / "whole", training=RECIPE).fit(*args)
+    adam_step, calls = torch.optim.Adam.step, {"n": 0}
+
+    def dies_at_step_13(self, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 13:  # inside the curriculum's second phase
+            raise KeyboardInterrupt("killed")
+        return adam_step(self, *a, **k)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(torch.optim.Adam, "step", dies_at_step_13)
+        with pytest.raises(KeyboardInterrupt):
+            small(cls, tmp_path / "killed", training=RECIPE).fit(*args)
+    resumed = small(cls, tmp_path / "killed", training=RECIPE).fit(*args)
+    np.testing.assert_array_equal(resumed.params_.data, whole.params_.data)
+    assert resumed.history_ == whole.history_
+
+
+def test_the_scaled_residual_dnn_starts_as_the_state_held_and_linearizes_exactly(
+    data: dict,
+) -> None:
+    learner = small(DNN, residual=True, training={"max_steps": 1, "lr": 1e-9})
+    learner.fit(data["train"], data["validation"], data["normalizer"])
+    x0, inputs = data["validation"][0].states[0], data["validation"][0].inputs[:20]
+    np.testing.assert_allclose(learner.predict(x0, inputs), np.tile(x0, (21, 1)), atol=1e-4)
+    normalize = data["normalizer"].states
+    steps = np.concatenate([np.diff(normalize(e.states), axis=0) for e in data["train"]])
+    np.testing.assert_allclose(learner.increment_scale_, steps.std(0))  # D: increments' std
+    trained = small(DNN, residual=True, training={"max_steps": 40, "lr": 1e-2})
+    trained.fit(data["train"], data["validation"], data["normalizer"])
+    rng = np.random.default_rng(0)
+    z, v = rng.uniform(0.2, 0.8, (5, 3)), rng.uniform(0.2, 0.8, (5, 2))
+    A, B, d = trained.linearize(z, v)
+    np.testing.assert_allclose(
+        (A @ z[..., None])[..., 0] + (B @ v[..., None])[..., 0] + d, trained.step(z, v), atol=1e-12
+    )
+    eps = 1e-6
+    for j in range(3):
+        dz = np.zeros(3)
+        dz[j] = eps
+        fd = (trained.step(z + dz, v) - trained.step(z - dz, v)) / (2 * eps)
+        np.testing.assert_allclose(A[:, :, j], fd, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("training", "message"),
+    [
+        ({"selection": "best"}, "training.selection"),
+        ({"curriculum": [[10]]}, "training.curriculum"),
+        ({"lr_schedule": "cosine", "max_steps": None, "max_epochs": 3}, "training.max_steps"),
+        ({"grad_clip_norm": -1.0}, "training.grad_clip_norm"),
+        ({"rollout_scales": "vx"}, "training.rollout_scales"),
+    ],
+)
+def test_bad_training_recipe_settings_fail_in_one_line(training: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message) as info:
+        TrainingConfig(**training)
+    assert "\n" not in str(info.value)
+
+
+def test_loss_scales_of_the_wrong_length_fail_in_one_line(data: dict) -> None:
+    learner = small(DNN, loss_scales=[0.2, 0.1])
+    with pytest.raises(ValueError, match=r"learner\.loss_scales has 2 entries") as info:
+        learner.fit(data["train"], data["validation"], data["normalizer"])
+    assert "\n" not in str(info.value)
