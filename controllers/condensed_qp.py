@@ -64,6 +64,9 @@ DAQP_OPTIMAL = 1
 # Lifts this small (the three-state models) get their free response as one product with maps
 # built with the model (``free_response_maps``), not a loop over the horizon at every solve.
 SMALL_LIFT = 16
+# The status of a solve whose prediction (free response) is not finite: a model that diverges
+# from this state. Nothing is optimised; the controller falls back.
+PREDICTION_NOT_FINITE = "prediction_not_finite"
 
 
 @dataclass(frozen=True)
@@ -299,6 +302,8 @@ class CondensedQP:
     def solve(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
         """The QP's optimum for lifted state z, previous input v_prev, references y_ref (n Np,)."""
         x_u = self.unconstrained(z, v_prev, y_ref)
+        if not np.all(np.isfinite(x_u)):  # every comparison with NaN is False: refuse it here
+            return QPSolution(np.zeros((self.Nc, self.m)), 0.0, "failed", 0, PREDICTION_NOT_FINITE)
         r = self.residual(x_u, v_prev)
         if not (r > self.tol).any():
             self._guess[:] = False

@@ -525,9 +525,20 @@ class DEMPC:
                 A, B, d = model.linearize(z[None], guess[:1])
             else:
                 A, B, d = model.linearize(_rollout(model, z, guess), guess)
-            if not all(np.isfinite(a).all() for a in (A, B, d) if a is not None):
-                # The model, not the QP, has failed: a diverging rollout along the plan. The
-                # step falls back to the previous plan, counted as a failure, and says whose.
+            states_qp = self.qp
+            assert isinstance(states_qp, TimeVaryingQP)
+            finite = all(np.isfinite(a).all() for a in (A, B, d) if a is not None)
+            theta = states_qp.model_theta(A, B, d) if finite else None
+            prepared = None
+            if theta is not None and np.isfinite(theta).all():
+                try:
+                    prepared = self._build(theta, band)
+                except np.linalg.LinAlgError:  # finite, but too large for its Hessian
+                    prepared = None
+            if prepared is None:
+                # The model, not the QP, has failed: a diverging rollout along the plan (or a
+                # linearisation whose products overflow over the horizon). The step falls back
+                # to the previous plan, counted as a failure, and says whose.
                 log.warning(
                     "%s's linearisation along the plan is not finite (it diverges from this "
                     "state under the planned inputs): DE-MPC falls back to its previous plan",
@@ -535,7 +546,6 @@ class DEMPC:
                 )
                 failed = QPSolution(np.zeros((self.Nc, INPUTS)), 0.0, "failed", 0, MODEL_NOT_FINITE)
                 return _Prepared(None, failed)
-            prepared = self._build(A, B, d, band)
             if iteration == self.sqp_iterations - 1:
                 return prepared
             solution = self._feedback(prepared, z, v_prev, y_ref, w, where)
@@ -544,19 +554,17 @@ class DEMPC:
             guess = _held(v_prev + np.cumsum(solution.dv, axis=0), self.Np)
         raise AssertionError("unreachable: sqp_iterations >= 1")
 
-    def _build(
-        self, A: np.ndarray, B: np.ndarray, d: np.ndarray | None, band: float | None
-    ) -> _Prepared:
-        """The QP of the model (A, B, d): Θ, Hessian, factor, the solver's rows; for a path
-        (band: v̄), the path QP's, extended from the model's Θ."""
+    def _build(self, theta: np.ndarray, band: float | None) -> _Prepared:
+        """The QP of the model whose Θ ``theta`` is (its A, B, d set by ``model_theta``):
+        Hessian, factor, the solver's rows; for a path (band: v̄), the path QP's, extended
+        from the model's Θ."""
         states_qp = self.qp
         assert isinstance(states_qp, TimeVaryingQP)
         if self._path is None:
-            states_qp.set_model(A, B, d)
+            states_qp.set_prediction_matrix(theta)
             states_qp.prepare_solvers()
             return _Prepared(None, None)
         assert self.frenet is not None and self.path_qp is not None and band is not None
-        theta = states_qp.model_theta(A, B, d)
         self.path_qp.set_prediction_matrix(self.frenet.extend_theta(theta, band))
         self.path_qp.prepare_solvers()
         return _Prepared(theta, None, band)

@@ -61,6 +61,7 @@ def state_loss_weights(
     w = (np.where(span > 1e-12, span, 1.0) / np.asarray(scales, float)) ** 2
     return torch.from_numpy((w / w.mean()).astype(np.float32))
 
+
 # Settings that may change between a run and its resumption without changing the result.
 _RESUMABLE = (
     "max_steps",

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from controllers import DEMPC, DEMPCConfig
-from controllers.condensed_qp import CondensedQP, TimeVaryingQP
+from controllers.condensed_qp import PREDICTION_NOT_FINITE, CondensedQP, TimeVaryingQP
 from controllers.lifted_linear import LiftedLinearModel
 from controllers.linearization import BilinearLinearization
 from harness.core.episode import MinMaxNormalizer
@@ -283,11 +283,17 @@ def test_the_structured_dual_operator_equals_the_dense_one() -> None:
     np.testing.assert_allclose(qp._Zt, (p_inv @ qp.G.T).T, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "poison",
+    ["nan_at_the_end", "finite_but_overflowing", "too_large_for_the_hessian"],
+)
 def test_a_model_that_diverges_along_the_plan_is_named_and_the_step_falls_back(
-    monkeypatch, caplog
+    monkeypatch, caplog, poison: str
 ) -> None:
-    """A NaN linearisation is the model's failure, not the QP's: the controller says whose, applies
-    the previous plan's next move and counts a failure, and the run goes on."""
+    """A NaN linearisation, or a finite one whose products overflow over the horizon (Θ not
+    finite) or whose Θ is too large for a Hessian, is the model's failure, not the QP's: the
+    controller says whose, applies the previous plan's next move and counts a failure, and the
+    run goes on."""
     model = toy_bilinear_model()
     reference = feasible_reference(model, steps=40)
     controller = DEMPC(model, DEMPCConfig(Np=10, Nc=7))
@@ -302,7 +308,12 @@ def test_a_model_that_diverges_along_the_plan_is_named_and_the_step_falls_back(
     def diverged(z: np.ndarray, v: np.ndarray):
         A, B, d = exact(z, v)
         A = A.copy()
-        A[-1, 0, 0] = np.nan  # the rollout left the model's domain at the horizon's end
+        if poison == "nan_at_the_end":  # the rollout left the model's domain at the horizon's end
+            A[-1, 0, 0] = np.nan
+        elif poison == "finite_but_overflowing":  # 1e30 a step: inf within the horizon
+            A[:, 0, 0] = 1e30
+        else:  # finite Θ, but ΘᵀQΘ overflows
+            A[:, 0, 0] = 1e20
         return A, B, d
 
     monkeypatch.setattr(linearization, "linearize", diverged)
@@ -310,5 +321,18 @@ def test_a_model_that_diverges_along_the_plan_is_named_and_the_step_falls_back(
         u, info = controller.act(x, 0.01)
     assert info.fallback and info.solve_path == "failed" and np.isfinite(u).all()
     np.testing.assert_allclose(u, first.planned_inputs[1])
-    assert f"{type(model).__name__}'s linearisation along the plan is not finite" in caplog.text
+    named = f"{type(model).__name__}'s linearisation along the plan is not finite" in caplog.text
+    assert named or (poison != "nan_at_the_end" and PREDICTION_NOT_FINITE in caplog.text)
     assert "Hessian" not in caplog.text
+
+
+def test_a_solve_whose_prediction_is_not_finite_fails_and_optimises_nothing() -> None:
+    """NaN compares False with every bound, so an unchecked NaN optimum would pass for an
+    unconstrained one: the QP refuses it instead."""
+    A, B, d, C = random_time_varying(3, N=4)
+    qp = TimeVaryingQP(C, 2, **SETTINGS)
+    qp.set_model(A, B, d)
+    z = np.full(4, np.nan)
+    solution = qp.solve(z, np.full(2, 0.5), np.zeros(3 * SETTINGS["Np"]))
+    assert not solution.ok and solution.status == PREDICTION_NOT_FINITE
+    assert solution.path == "failed" and np.all(solution.dv == 0)
