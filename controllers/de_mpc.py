@@ -57,7 +57,7 @@ STATES, INPUTS = 3, 2
 # Where a time-varying model is linearised: at every point of the previous plan (exact along
 # the horizon), or at the current state and next input only, held over the horizon (frozen:
 # Θ from one step response: far cheaper for a large lift at 60/50, see docs/control.md).
-LINEARIZATIONS = ("plan", "frozen")
+LINEARIZATIONS = ("plan", "frozen", "predicted")
 # What the cost follows: the reference's states (the paper's), or a run's path when it has one
 # (lateral and heading error, controllers/path_following.py; state tracking where it has none).
 REFERENCES = ("states", "path")
@@ -328,6 +328,7 @@ class DEMPC:
         self._z_expected: np.ndarray | None = None
         self._prepared: _Prepared | None = None
         self._last: _Last | None = None
+        self._predicted_rows: np.ndarray | None = None  # the last plan's states, normalized
         self.qp.reset()
         if self.path_qp is not None:
             self.path_qp.reset()
@@ -404,6 +405,7 @@ class DEMPC:
         planned_inputs = self.normalizer.inputs_inverse(plan)
         u = np.clip(planned_inputs[0], self.u_min, self.u_max)
         predicted = qp.predict(z, v_prev, dv)[:, :STATES] + shift.reshape(self.Np, -1)[:, :STATES]
+        self._predicted_rows = predicted if solution.ok else None
         if self.delay_steps:  # row i is i + 1 steps after the measurement, with or without delay
             predicted = np.vstack([(self.C @ z)[None], predicted[:-1]])
         info = StepInfo(
@@ -524,7 +526,7 @@ class DEMPC:
             if self.config.linearization == "frozen":
                 A, B, d = model.linearize(z[None], guess[:1])
             else:
-                A, B, d = model.linearize(_rollout(model, z, guess), guess)
+                A, B, d = model.linearize(self._points(model, z, guess, iteration), guess)
             states_qp = self.qp
             assert isinstance(states_qp, TimeVaryingQP)
             finite = all(np.isfinite(a).all() for a in (A, B, d) if a is not None)
@@ -553,6 +555,19 @@ class DEMPC:
                 return _Prepared(None, solution)
             guess = _held(v_prev + np.cumsum(solution.dv, axis=0), self.Np)
         raise AssertionError("unreachable: sqp_iterations >= 1")
+
+    def _points(
+        self, model: LinearizableModel, z: np.ndarray, guess: np.ndarray, iteration: int
+    ) -> np.ndarray:
+        """(Np, N) points to linearise at, z̄_0 = z: ``plan``, the model rolled out along the
+        guess (exact, Np model steps in sequence); ``predicted`` (acados's RTI shift), the
+        states the last step's QP predicted under its plan, one step on and lifted, in one
+        batched call (no simulation; the first step and later SQP iterations roll out)."""
+        rows = self._predicted_rows
+        if self.config.linearization != "predicted" or iteration or rows is None:
+            return _rollout(model, z, guess)
+        ahead = model.lift(self.normalizer.states_inverse(rows[1:]))
+        return np.vstack([z[None], np.asarray(ahead, dtype=float)])
 
     def _build(self, theta: np.ndarray, band: float | None) -> _Prepared:
         """The QP of the model whose Θ ``theta`` is (its A, B, d set by ``model_theta``):

@@ -16,6 +16,7 @@ import pytest
 
 from controllers import DEMPCConfig
 from controllers.condensed_qp import SMALL_LIFT, TimeVaryingQP
+from controllers.linearization import BilinearLinearization
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
 from harness.references import DoubleLaneChange
@@ -86,3 +87,34 @@ def test_the_free_response_with_a_disturbance_equals_a_step_by_step_rollout(N: i
     qp.set_disturbance(None)
     qp.set_model(A, B, d + w)  # the disturbance as part of d: the same outputs
     np.testing.assert_allclose(qp.free_response(z, v_prev), expected, atol=1e-12)
+
+
+def test_linearising_at_the_predicted_states_simulates_nothing_and_tracks_as_the_plan() -> None:
+    """``linearization: predicted`` (the RTI shift) takes its points from the last step's QP
+    prediction, one step on: after the first step the model is never stepped to linearise,
+    and on the model's own plant it tracks as the exact rollout along the plan does."""
+    model = toy_bilinear_model()
+    reference = feasible_reference(model, 300)
+    steps = {"n": 0}
+    original = BilinearLinearization.step  # what DE-MPC steps a bilinear model with
+
+    def counted(self, z, v):
+        steps["n"] += 1
+        return original(self, z, v)
+
+    results = {}
+    for linearization in ("plan", "predicted"):
+        steps["n"] = 0
+        BilinearLinearization.step = counted  # type: ignore[method-assign]
+        try:
+            metrics, inputs = _inputs(model, reference, Np=30, Nc=20, linearization=linearization)
+        finally:
+            BilinearLinearization.step = original  # type: ignore[method-assign]
+        results[linearization] = (metrics, inputs, steps["n"])
+    plan, predicted = results["plan"], results["predicted"]
+    control_steps = len(reference) - 1
+    assert plan[2] >= 30 * control_steps  # a rollout of Np steps every step (and the plant's)
+    assert predicted[2] <= 2 * control_steps + 60  # the plant's and the prepare's own steps
+    assert np.ptp(predicted[1][:, 0]) > 0.05
+    for state in ("vx", "vy", "yaw_rate"):
+        assert predicted[0]["rmse"][state] <= 1.1 * plan[0]["rmse"][state] + 1e-6

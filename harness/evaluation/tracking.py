@@ -9,6 +9,8 @@
 - ``prepare_time_ms``: {median, p99, max} of its ``prepare`` call, run before each measurement
   (:class:`~harness.core.contracts.RealTimeIteration`; zeros for a one-phase controller):
   preparation plus feedback must fit in the control period;
+- ``step_time_ms``: {median, p99, max} of preparation plus feedback, step by step: what must
+  fit in the control period (``solve_time_ms`` for a one-phase controller);
 - ``deadline_misses``: steps whose ``act`` (and ``prepare``, where there is one) took longer
   than the control period;
 - ``solver_failures``: steps where the controller fell back (``StepInfo.fallback``);
@@ -140,8 +142,10 @@ def track(
     if prepare_s:  # a period holds the step's feedback and the next one's preparation
         prepare = np.array(prepare_s[: len(run.solve_time_s)])
         metrics["deadline_misses"] = int(np.sum(run.solve_time_s + prepare > plant.dt))
+        metrics["step_time_ms"] = _statistics((run.solve_time_s + prepare) * 1e3)
     else:
         prepare = np.zeros(1)
+        metrics["step_time_ms"] = metrics["solve_time_ms"]
     metrics["prepare_time_ms"] = _statistics(prepare * 1e3)
     metrics["solve_paths"] = dict(Counter(info.solve_path for info in infos))
     metrics["follows_path"] = bool(infos[0].follows_path)
