@@ -111,7 +111,7 @@ class DEMPCConfig:
     # "DAQP") or ours (controllers/condensed_qp.py).
     qp_solver: str = "daqp"
     sqp_iterations: int = 1
-    linearization: str = "plan"
+    linearization: str = "predicted"
     reference: str = "states"
     # reference=path: diagonal weights on (vx, vy, yaw rate) errors, normalized as Q's, then on
     # the lateral error (per m²) and heading error (per rad²) to the path.
