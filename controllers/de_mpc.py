@@ -474,7 +474,11 @@ class DEMPC:
         v_prev = self._v_prev
         if self.linearization is None:
             if self._path is not None:  # the path QP's Θ for the speed band expected
-                self._path_theta(SPEED_BAND_MPS * round(float(x[0]) / SPEED_BAND_MPS))
+                # The last step's speed, not the model's prediction of the next one: a model
+                # that predicts speed badly would otherwise flip the band, and rebuild Θ twice,
+                # every step (the speed moves far less than a band in one period).
+                speed = float((x if self._last is None else self._last.x)[0])
+                self._path_theta(SPEED_BAND_MPS * round(speed / SPEED_BAND_MPS))
                 assert self.path_qp is not None
                 self.path_qp.prepare_solvers()
             return
