@@ -91,7 +91,8 @@ class TrainingConfig:
     RMSE / ``rollout_scales`` (physical units: m/s, m/s, rad/s for vx, vy, r); ``lr_schedule:
     cosine`` warms up linearly over ``warmup_steps`` and decays to ``lr_final`` at ``max_steps``;
     ``grad_clip_norm`` clips the gradient's 2-norm; ``curriculum`` trains on shorter windows
-    first; ``initial_state_noise`` (normalized units) perturbs each window's first state.
+    first (checkpoints are chosen, and patience counted, only after it);
+    ``initial_state_noise`` (normalized units) perturbs each window's first state.
     """
 
     batch_size: int = 64
@@ -186,6 +187,14 @@ class TrainingConfig:
         return self.lr_final + 0.5 * (self.lr - self.lr_final) * (
             1.0 + math.cos(math.pi * progress)
         )
+
+    @property
+    def curriculum_steps(self) -> int:
+        """Training steps on the curriculum's shorter windows. Checkpoints are chosen, and
+        patience counted, only after them: a model trained on short windows so far is no
+        candidate for long rollouts (the main job's Deep EDMD kept a step-500 checkpoint by a
+        lucky validation rollout and stopped at step 2500 before this rule)."""
+        return sum(steps for _, steps in self.curriculum or ())
 
     def horizon_at(self, step: int, horizon: int) -> int:
         """The window length of training step ``step``: the curriculum's phase, then ``horizon``."""
@@ -460,6 +469,10 @@ class _State:
         if config.selection == "rollout":  # a diverging rollout is not an improvement
             loss = validation.get(ROLLOUT_SCORE, math.inf)
             loss = loss if math.isfinite(loss) else math.inf
+        if self.step <= config.curriculum_steps:  # short windows: not yet a candidate
+            self.best_loss, self.evals_since_best = math.inf, 0
+            self.best_params = params.data.clone()  # what a run cut short here returns
+            return
         if loss < self.best_loss or self.best_params is None:
             self.best_loss, self.evals_since_best = loss, 0
             self.best_params = params.data.clone()

@@ -766,6 +766,54 @@ def test_the_kept_checkpoint_is_the_best_by_rollout_not_by_window_loss() -> None
         assert ("rollout_score" in history.validation[0]) == (selection == "rollout")
 
 
+def test_no_checkpoint_of_the_curriculum_is_kept_and_patience_starts_after_it() -> None:
+    """Planted rollout scores 1, 9, 9, 5, 4, 6, 6 at steps 1..7 with a 3-step curriculum: the
+    excellent score at step 1 (short windows) is not kept, patience (2) counts from step 4, so
+    training stops at step 7 and keeps step 5's parameters."""
+    from learners import training as loop
+    from learners.nets import FlatParameters, LayerSpec
+
+    params = FlatParameters([LayerSpec("w", 1, 1, "linear", bias=False)])
+    at_evaluation: list[float] = []
+
+    class Objective:
+        def __init__(self) -> None:
+            self.params = params
+
+        def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
+            params.grad.fill_(1.0)
+            return 1.0
+
+        def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
+            at_evaluation.append(float(params.data[0]))
+            return {"loss": 1.0}
+
+    windows = WindowData(torch.rand(40, 1), torch.rand(40, 1), np.array([0]), np.array([40]))
+    planted = iter([1.0, 9.0, 9.0, 5.0, 4.0, 6.0, 6.0, 6.0, 6.0, 6.0])
+    config = TrainingConfig(
+        batch_size=2,
+        lr=0.1,
+        max_steps=10,
+        eval_every_steps=1,
+        patience=2,
+        progress=False,
+        selection="rollout",
+        curriculum=[[2, 3]],
+    )
+    history = loop.train(
+        "planted",
+        Objective(),
+        windows,
+        windows,
+        3,
+        config,
+        fingerprint={},
+        rollout_score=lambda: {"rollout_score": next(planted)},
+    )
+    assert history.stopped == "early_stopping" and history.step[-1] == 7
+    assert float(params.data[0]) == pytest.approx(at_evaluation[4])  # step 5, not step 1
+
+
 def test_schedules_are_functions_of_the_step() -> None:
     config = TrainingConfig(
         lr=1e-3,
