@@ -62,6 +62,14 @@ def state_loss_weights(
     return torch.from_numpy((w / w.mean()).astype(np.float32))
 
 
+def _is_size(value: Any) -> bool:
+    """An int, or a list of ints (widths): a size a user can make smaller (not a flag, not a
+    list of scales)."""
+    if isinstance(value, list):
+        return bool(value) and all(_is_size(item) for item in value)
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 # Settings that may change between a run and its resumption without changing the result.
 _RESUMABLE = (
     "max_steps",
@@ -253,7 +261,7 @@ class TrainedLearner(Learner):
         sizes = [  # the widths and sizes among the hyperparameters: what to make smaller
             f"learner.{key}"
             for key, value in self.hyperparameters.items()
-            if key != "horizon" and isinstance(value, int | list) and not isinstance(value, bool)
+            if key != "horizon" and _is_size(value)
         ]
         sizes.append("learner.training.batch_size")
         check_memory(" / ".join(sizes), what, 4 * (4 * parameters + activations))
