@@ -7,6 +7,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -715,61 +716,9 @@ def test_rollout_selection_keeps_the_checkpoint_that_predicts_the_validation_dri
 RECIPE_SCALES = TrainingConfig().rollout_scales
 
 
-def test_the_kept_checkpoint_is_the_best_by_rollout_not_by_window_loss() -> None:
-    """A planted sequence: rollout scores 5, 3, 4, 1, 2, 2.5 at the six evaluations while the
-    window loss falls at every one; each selection keeps its own best checkpoint."""
-    from learners import training as loop
-    from learners.nets import FlatParameters, LayerSpec
-
-    params = FlatParameters([LayerSpec("w", 1, 1, "linear", bias=False)])
-    at_evaluation: list[float] = []  # the parameter at each evaluation
-
-    class Objective:
-        def __init__(self) -> None:
-            self.params = params
-
-        def train_step(self, x: torch.Tensor, v: torch.Tensor, step: int) -> float:
-            params.grad.fill_(1.0)  # Adam moves the weight by lr every step
-            return 1.0
-
-        def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
-            at_evaluation.append(float(params.data[0]))
-            return {"loss": 1.0 / len(at_evaluation)}
-
-    windows = WindowData(torch.rand(40, 1), torch.rand(40, 1), np.array([0]), np.array([40]))
-    for selection, kept in (("rollout", 3), ("window_loss", 5)):
-        params.data.zero_()
-        at_evaluation.clear()
-        planted = iter([5.0, 3.0, 4.0, 1.0, 2.0, 2.5])
-        config = TrainingConfig(
-            batch_size=2,
-            lr=0.1,
-            max_steps=6,
-            eval_every_steps=1,
-            patience=10,
-            progress=False,
-            selection=selection,
-        )
-        history = loop.train(
-            "planted",
-            Objective(),
-            windows,
-            windows,
-            3,
-            config,
-            fingerprint={},
-            rollout_score=lambda planted=planted: {"rollout_score": next(planted)},
-        )
-        assert len(at_evaluation) == 6 and len(set(at_evaluation)) == 6
-        assert float(params.data[0]) == pytest.approx(at_evaluation[kept])
-        assert all("loss" in v for v in history.validation)  # the window loss is kept either way
-        assert ("rollout_score" in history.validation[0]) == (selection == "rollout")
-
-
-def test_no_checkpoint_of_the_curriculum_is_kept_and_patience_starts_after_it() -> None:
-    """Planted rollout scores 1, 9, 9, 5, 4, 6, 6 at steps 1..7 with a 3-step curriculum: the
-    excellent score at step 1 (short windows) is not kept, patience (2) counts from step 4, so
-    training stops at step 7 and keeps step 5's parameters."""
+def _planted_training(scores: list[float], **config) -> tuple[list[float], float, Any]:
+    """Train a one-weight model that Adam moves by lr every step, with the rollout score of
+    each evaluation planted: (the weight at each evaluation, the weight kept, the history)."""
     from learners import training as loop
     from learners.nets import FlatParameters, LayerSpec
 
@@ -786,32 +735,50 @@ def test_no_checkpoint_of_the_curriculum_is_kept_and_patience_starts_after_it() 
 
         def validate(self, x: torch.Tensor, v: torch.Tensor) -> dict[str, float]:
             at_evaluation.append(float(params.data[0]))
-            return {"loss": 1.0}
+            return {"loss": 1.0 / len(at_evaluation)}  # falls at every evaluation
 
     windows = WindowData(torch.rand(40, 1), torch.rand(40, 1), np.array([0]), np.array([40]))
-    planted = iter([1.0, 9.0, 9.0, 5.0, 4.0, 6.0, 6.0, 6.0, 6.0, 6.0])
-    config = TrainingConfig(
-        batch_size=2,
-        lr=0.1,
-        max_steps=10,
-        eval_every_steps=1,
-        patience=2,
-        progress=False,
-        selection="rollout",
-        curriculum=[[2, 3]],
-    )
+    planted = iter(scores)
+    settings = {"batch_size": 2, "lr": 0.1, "eval_every_steps": 1, "progress": False, **config}
     history = loop.train(
         "planted",
         Objective(),
         windows,
         windows,
         3,
-        config,
+        TrainingConfig(**settings),
         fingerprint={},
         rollout_score=lambda: {"rollout_score": next(planted)},
     )
+    return at_evaluation, float(params.data[0]), history
+
+
+def test_the_kept_checkpoint_is_the_best_by_rollout_not_by_window_loss() -> None:
+    """A planted sequence: rollout scores 5, 3, 4, 1, 2, 2.5 at the six evaluations while the
+    window loss falls at every one; each selection keeps its own best checkpoint."""
+    for selection, kept in (("rollout", 3), ("window_loss", 5)):
+        at_evaluation, weight, history = _planted_training(
+            [5.0, 3.0, 4.0, 1.0, 2.0, 2.5], max_steps=6, patience=10, selection=selection
+        )
+        assert len(at_evaluation) == 6 and len(set(at_evaluation)) == 6
+        assert weight == pytest.approx(at_evaluation[kept])
+        assert all("loss" in v for v in history.validation)  # the window loss is kept either way
+        assert ("rollout_score" in history.validation[0]) == (selection == "rollout")
+
+
+def test_no_checkpoint_of_the_curriculum_is_kept_and_patience_starts_after_it() -> None:
+    """Planted rollout scores 1, 9, 9, 5, 4, 6, 6 at steps 1..7 with a 3-step curriculum: the
+    excellent score at step 1 (short windows) is not kept, patience (2) counts from step 4, so
+    training stops at step 7 and keeps step 5's parameters."""
+    at_evaluation, weight, history = _planted_training(
+        [1.0, 9.0, 9.0, 5.0, 4.0, 6.0, 6.0, 6.0, 6.0, 6.0],
+        max_steps=10,
+        patience=2,
+        selection="rollout",
+        curriculum=[[2, 3]],
+    )
     assert history.stopped == "early_stopping" and history.step[-1] == 7
-    assert float(params.data[0]) == pytest.approx(at_evaluation[4])  # step 5, not step 1
+    assert weight == pytest.approx(at_evaluation[4])  # step 5, not step 1
 
 
 def test_schedules_are_functions_of_the_step() -> None:
