@@ -686,21 +686,11 @@ class TimeVaryingQP(CondensedQP):
         self._w = None if w is None else np.asarray(w, dtype=float)
         self._free_key = None
 
-    def set_prediction(self, theta: np.ndarray, free: np.ndarray) -> None:
-        """The step's prediction given directly, Y = free + Θ ΔV (Θ (n Np, m Nc), free (n Np,)),
-        for outputs that are not C z of one model (path following: a model's outputs and the
-        errors to a path they drive, ``controllers/path_following.py``)."""
-        shape = (self.n * self.Np, self.m * self.Nc)
-        theta, free = np.asarray(theta, dtype=float), np.asarray(free, dtype=float)
-        if theta.shape != shape or free.shape != shape[:1]:
-            raise ValueError(f"prediction must be Θ {shape} and free ({shape[0]},)")
-        self._given_free = free
-        if not np.array_equal(theta, self.theta):  # the same Θ keeps its Hessian and dual
-            self._set_theta(theta)
-
     def set_prediction_matrix(self, theta: np.ndarray) -> None:
-        """Θ alone (as :meth:`set_prediction`'s), with its Hessian and factor: the preparation
-        of a step whose free response :meth:`set_free_response` gives when it is measured."""
+        """The step's Θ (n Np, m Nc) given directly, for outputs that are not C z of one model
+        (path following: a model's outputs and the errors to a path they drive), with its
+        Hessian and factor: the preparation of a step whose free response
+        :meth:`set_free_response` gives when it is measured."""
         shape = (self.n * self.Np, self.m * self.Nc)
         if theta.shape != shape:
             raise ValueError(f"prediction must be Θ {shape}, got {theta.shape}")
@@ -735,7 +725,7 @@ class TimeVaryingQP(CondensedQP):
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
         """(n Np,) outputs of the step's model with the input held at v_prev (the given one
-        after :meth:`set_prediction`, whatever z and v_prev)."""
+        after :meth:`set_free_response`, whatever z and v_prev)."""
         if self._given_free is not None:
             return self._given_free
         key = (np.asarray(z, dtype=float).tobytes(), np.asarray(v_prev, dtype=float).tobytes())

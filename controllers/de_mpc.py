@@ -279,8 +279,8 @@ class DEMPC:
         self.frenet: FrenetOutputs | None = None
         self.path_qp: TimeVaryingQP | None = None
         if config.reference == "path":
-            # Its prediction is built from the states QP's every step (set_prediction): it
-            # has outputs, no model of its own (no lifted state: N = 0).
+            # Its prediction is built from the states QP's every step (set_prediction_matrix,
+            # set_free_response): it has outputs, no model of its own (no lifted state: N = 0).
             self.frenet = FrenetOutputs(self.normalizer, self.dt)
             settings["Q"] = config.path_weights()
             self.path_qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **settings)

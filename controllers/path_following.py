@@ -11,9 +11,9 @@ Both are linear in the model's predicted states for a given v̄, and the curvatu
 known input, so the errors over the horizon are running sums of the model's own prediction
 Y = free + Θ ΔV: whatever the model (lifted-linear, bilinear, linearisable), the path QP's
 prediction is a few cumulative sums of the states QP's, O(Np·Nc·m) a step, and its Hessian is
-built from it (:meth:`~controllers.condensed_qp.TimeVaryingQP.set_prediction`). The outputs
-per step are (vx, vy, yaw rate) normalized as the model's, then e_y and e_ψ; ``controller.Q_path``
-weighs them.
+built from it (:meth:`~controllers.condensed_qp.TimeVaryingQP.set_prediction_matrix`; the free
+response by ``set_free_response``). The outputs per step are (vx, vy, yaw rate) normalized as
+the model's, then e_y and e_ψ; ``controller.Q_path`` weighs them.
 """
 
 from __future__ import annotations
