@@ -28,7 +28,7 @@ from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
 from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, block
 from learners.windows import WindowData
 
-__all__ = ["TrainedLearner", "check_loss_scales", "state_loss_weights"]
+__all__ = ["TrainedLearner", "check_loss_scales", "check_per_state", "state_loss_weights"]
 
 
 def check_loss_scales(scales: Sequence[float] | None) -> tuple[float, ...] | None:
@@ -44,6 +44,15 @@ def check_loss_scales(scales: Sequence[float] | None) -> tuple[float, ...] | Non
     return tuple(check_positive("loss_scales", value) for value in scales)
 
 
+def check_per_state(key: str, scales: Sequence[float], n: int) -> None:
+    """``key`` (a list of scales) has one entry per state of data with ``n`` states."""
+    if len(scales) != n:
+        raise ValueError(
+            f"{key} has {len(scales)} entries; the data has {n} states "
+            f"(give one scale per state, in its unit)"
+        )
+
+
 def state_loss_weights(
     normalizer: MinMaxNormalizer, scales: Sequence[float] | None
 ) -> torch.Tensor | None:
@@ -53,11 +62,7 @@ def state_loss_weights(
     if scales is None:
         return None
     span = normalizer.state_max - normalizer.state_min
-    if len(scales) != len(span):
-        raise ValueError(
-            f"learner.loss_scales has {len(scales)} entries; the data has {len(span)} states "
-            f"(give one scale per state, in its unit)"
-        )
+    check_per_state("learner.loss_scales", scales, len(span))
     w = (np.where(span > 1e-12, span, 1.0) / np.asarray(scales, float)) ** 2
     return torch.from_numpy((w / w.mean()).astype(np.float32))
 
@@ -182,13 +187,9 @@ class TrainedLearner(Learner):
         open loop from its first state (what the prediction tables do), RMSE per state in
         physical units over ``training.rollout_scales``, averaged over states and drives.
         ``rollout_rmse_<i>`` is state i's RMSE averaged over the drives; inf where one diverged."""
-        scales = np.asarray(self.training.rollout_scales, float)
         n = self.normalizer_.state_min.shape[0]
-        if scales.shape != (n,):
-            raise ValueError(
-                f"learner.training.rollout_scales has {scales.size} entries; the data has {n} "
-                f"states (give one scale per state, in its unit)"
-            )
+        check_per_state("learner.training.rollout_scales", self.training.rollout_scales, n)
+        scales = np.asarray(self.training.rollout_scales, float)
 
         def score() -> dict[str, float]:
             self._sync_for_rollout(train)
@@ -253,6 +254,10 @@ class TrainedLearner(Learner):
         parameter), and one batch of windows' activations through every layer.
         """
         del episode_frames  # windows, not episodes, set the batch
+        # Checked here too, so that a wrong length fails before any data, not at fit.
+        if self.loss_scales is not None:
+            check_per_state("learner.loss_scales", self.loss_scales, n)
+        check_per_state("learner.training.rollout_scales", self.training.rollout_scales, n)
         specs = self._specs(n, m)
         parameters = sum(s.fan_out * (s.fan_in + int(s.bias)) for s in specs)
         widths = sum(s.fan_out for s in specs)

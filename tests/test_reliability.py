@@ -115,6 +115,12 @@ def build_as_the_app(*overrides: str) -> None:
             ["experiment=generalization", "task.other_plants.sedan_wet.tire.road_friction=0"],
             "task.other_plants.sedan_wet.tire.road_friction must be > 0 (got 0)",
         ),
+        # One scale per state: a wrong length fails before any data, not at fit.
+        (["learner=dnn", "learner.loss_scales=[0.2,0.1]"], "learner.loss_scales has 2 entries"),
+        (
+            ["learner=deep_edmd", "learner.training.rollout_scales=[1.0]"],
+            "learner.training.rollout_scales has 1 entries",
+        ),
         # Sizes no machine has, refused before any data (point 10).
         (
             ["learner=edmd", "learner.dictionary.num_centers=1000000000"],
