@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from harness.core.checks import is_number
-from harness.core.contracts import INPUT_NAMES, STATE_NAMES
+from harness.core.contracts import STATE_NAMES
 from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.files import write_atomic
 
@@ -51,7 +51,7 @@ FORMAT_VERSION = 1
 # a dictionary replaced ELM-EDMD's own class; EDMD.from_hyperparameters reads its keywords).
 _MOVED = {"learners.elm_edmd.ELMEDMD": "learners.edmd.EDMD"}
 STATE_DIM = 3  # vx, vy, yaw_rate
-INPUT_DIM = 2  # steer_wheel_deg, pedal
+INPUT_DIM = 2  # the sedan's: steer_wheel_deg, pedal (a dataset of logs has its own)
 
 
 class Dim(NamedTuple):
@@ -216,12 +216,17 @@ class KoopmanLearner(Learner):
         """Lifted state z = lift(x) of physical states x (..., 3) -> (..., N)."""
 
 
-def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT_DIM) -> Learner:
+def load(
+    path: str | Path, *, state_dim: int = STATE_DIM, inputs: Sequence[str] | None = None
+) -> Learner:
     """Load any learner written by :meth:`Learner.save`, checking it models this harness's sizes.
+
+    ``inputs``: the input names the caller's data has (None: whatever the file models); a model
+    of other inputs is refused, since its predictions would read one column as another.
 
     Raises:
         ValueError: (one line) when the file is not a learner file, or models another number of
-            states or inputs than ``state_dim`` / ``input_dim``.
+            states than ``state_dim`` or other inputs than ``inputs``.
     """
     path = Path(path)
     try:
@@ -236,11 +241,13 @@ def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT
             f"{path} is learner format version {payload.get('version')}, "
             f"this harness reads version {FORMAT_VERSION}"
         )
-    if (payload["state_dim"], payload["input_dim"]) != (state_dim, input_dim):
+    if payload.get("state_dim") != state_dim:
         raise ValueError(
-            f"{path} models {payload['state_dim']} states and {payload['input_dim']} inputs; "
-            f"expected {state_dim} states and {input_dim} inputs"
+            f"{path} models {payload.get('state_dim')} states; expected {state_dim} states"
         )
+    input_dim = payload.get("input_dim")
+    if not isinstance(input_dim, int) or input_dim < 1:
+        raise ValueError(f"{path} is not a learner file (input_dim {input_dim!r})")
     saved_class = str(payload["class"])
     module_name, _, class_name = _MOVED.get(saved_class, saved_class).rpartition(".")
     if not module_name.startswith("learners."):
@@ -258,10 +265,22 @@ def load(path: str | Path, *, state_dim: int = STATE_DIM, input_dim: int = INPUT
     if problem is not None:
         raise ValueError(f"{path}: {problem}: retrain the model, or choose another model file")
     learner.normalizer_ = MinMaxNormalizer.from_dict(normalizer)
+    if inputs is not None:
+        check_inputs(learner, inputs, str(path))
     learner._set_state(tensors)
     provenance = payload.get("provenance")
     learner.provenance_ = dict(provenance) if isinstance(provenance, Mapping) else {}
     return learner
+
+
+def check_inputs(learner: Learner, inputs: Sequence[str], source: str) -> None:
+    """Refuse, in one line, a model fitted on other inputs than ``inputs`` (names in order)."""
+    modelled = learner.normalizer_.input_names
+    if tuple(inputs) != modelled:
+        raise ValueError(
+            f"{source} models inputs ({', '.join(modelled)}), but the data has inputs "
+            f"({', '.join(inputs)}): fit the learner on this data, or use a model of its inputs"
+        )
 
 
 def array_problem(
@@ -307,9 +326,17 @@ def _normalizer_problem(values: Mapping[str, Any], n: int, m: int) -> str | None
     """A normalizer of the wrong size, with NaN or inf (``state_max=inf``), or min above max."""
     shapes: dict[str, Shape] = {"state_min": (n,), "state_max": (n,)}
     shapes |= {"input_min": (m,), "input_max": (m,)}
-    problem = array_problem(values, shapes, kind="normalizer")
+    ranges = {k: v for k, v in values.items() if k != "inputs"}
+    problem = array_problem(ranges, shapes, kind="normalizer")
     if problem is not None:
         return problem
+    described = values.get("inputs")
+    if described is not None and (
+        not isinstance(described, Sequence)
+        or len(described) != m
+        or not all(isinstance(c, Mapping) and isinstance(c.get("name"), str) for c in described)
+    ):
+        return f"normalizer 'inputs' does not describe its {m} inputs ({described!r:.80})"
     for low, high in (("state_min", "state_max"), ("input_min", "input_max")):
         below = np.flatnonzero(np.asarray(values[high]) < np.asarray(values[low]))
         if below.size:
@@ -452,7 +479,7 @@ MIN_TRAINING_RANGE = 1e-6
 def check_varied(train: Sequence[Episode], learner: str) -> None:
     """Refuse, in one line naming the learner and the column, training drives in which a state or
     an input stays (all but) constant (see ``MIN_TRAINING_RANGE``)."""
-    for field, names in (("states", STATE_NAMES), ("inputs", INPUT_NAMES)):
+    for field, names in (("states", STATE_NAMES), ("inputs", train[0].input_names)):
         values = np.concatenate([getattr(e, field) for e in train])
         low, high = values.min(0), values.max(0)
         size = np.maximum(np.maximum(np.abs(low), np.abs(high)), 1.0)

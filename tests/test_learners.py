@@ -159,10 +159,27 @@ def test_loading_a_model_of_other_sizes_fails_in_one_line(tmp_path: Path) -> Non
     )
     model = EDMD(ThinPlateRBF(num_centers=5)).fit([episode], [], MinMaxNormalizer.fit([episode]))
     path = model.save(tmp_path / "small.pt")
-    with pytest.raises(ValueError, match="models 2 states and 2 inputs; expected 3 states") as info:
+    with pytest.raises(ValueError, match="models 2 states; expected 3 states") as info:
         learners.load(path)
     assert "\n" not in str(info.value)
     assert learners.load(path, state_dim=2).A_.shape == model.A_.shape
+
+
+def test_a_model_refuses_data_with_other_inputs_in_one_line(
+    fitted: dict[str, Learner], tmp_path: Path
+) -> None:
+    """A model file knows its inputs by name: data of other inputs (a log's throttle and brake
+    where the model was fitted on the sedan's pedal) is refused before it is read as them."""
+    path = fitted["edmd"].save(tmp_path / "edmd.pt")
+    assert learners.load(path, inputs=("steer_wheel_deg", "pedal")).normalizer_.input_names == (
+        "steer_wheel_deg",
+        "pedal",
+    )
+    with pytest.raises(
+        ValueError, match=r"models inputs \(steer_wheel_deg, pedal\), but the data"
+    ) as info:
+        learners.load(path, inputs=("wheel_angle_rad", "throttle", "brake"))
+    assert "\n" not in str(info.value)
 
 
 def test_loading_with_the_wrong_class_names_the_class(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -15,6 +16,36 @@ POSE_NAMES = ("X", "Y", "yaw")
 
 
 @dataclass(frozen=True)
+class InputChannel:
+    """One input column as the models see it: its name and the gains that turn it into the
+    feature they are fitted in (``value * gain_positive`` where value >= 0, ``value *
+    gain_negative`` below). A dataset describes its inputs with these: the sedan's pedal is
+    throttle opening above zero and brake pressure below, each scaled to [-1, 1]; a column of a
+    user's log is taken as it is (gains 1)."""
+
+    name: str
+    gain_positive: float = 1.0
+    gain_negative: float = 1.0
+
+    def feature(self, value: np.ndarray) -> np.ndarray:
+        value = np.asarray(value, dtype=float)
+        return np.where(value >= 0, value * self.gain_positive, value * self.gain_negative)
+
+    def value(self, feature: np.ndarray) -> np.ndarray:
+        feature = np.asarray(feature, dtype=float)
+        return np.where(feature >= 0, feature / self.gain_positive, feature / self.gain_negative)
+
+
+# The sedan's inputs (``harness.core.contracts.INPUT_NAMES``): the paper's per-step increments
+# (throttle 0.004, brake 0.18 MPa) are both ~0.02 on the pedal's signed scale, and throttle no
+# longer occupies 2 % of the pedal's range after min-max normalization.
+SEDAN_INPUTS: tuple[InputChannel, ...] = (
+    InputChannel(INPUT_NAMES[0]),
+    InputChannel(INPUT_NAMES[1], 1.0 / THROTTLE_MAX, 1.0 / BRAKE_MAX_MPA),
+)
+
+
+@dataclass(frozen=True)
 class Episode:
     """One drive sampled at the control period, physical units (SI; steering in degrees).
 
@@ -25,14 +56,24 @@ class Episode:
     name: str
     time_s: np.ndarray  # (T,)
     states: np.ndarray  # (T, 3)
-    inputs: np.ndarray  # (T, 2): steer_wheel_deg, pedal
-    poses: np.ndarray  # (T, 3): X, Y, yaw for display
+    inputs: np.ndarray  # (T, m): for the sedan steer_wheel_deg, pedal
+    poses: np.ndarray  # (T, 3): X, Y, yaw for display (zeros where a log has none)
+    channels: tuple[InputChannel, ...] = SEDAN_INPUTS  # what each input column is
 
     def __post_init__(self) -> None:
         length = len(self.time_s)
         for field_name in ("states", "inputs", "poses"):
             if len(getattr(self, field_name)) != length:
                 raise ValueError(f"episode {self.name}: {field_name} has a different length")
+        if np.ndim(self.inputs) == 2 and np.shape(self.inputs)[1] != len(self.channels):
+            raise ValueError(
+                f"episode {self.name}: inputs has {np.shape(self.inputs)[1]} columns for "
+                f"{len(self.channels)} input channels ({', '.join(self.input_names)})"
+            )
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(channel.name for channel in self.channels)
 
     def __len__(self) -> int:
         return len(self.time_s)
@@ -45,7 +86,7 @@ class Episode:
         A NaN in a stored drive does not stop where it is read: it turns the normalizer, the fit
         or an RMSE into NaN (or ``null`` in JSON) far from the file that holds it.
         """
-        columns = {"states": STATE_NAMES, "inputs": INPUT_NAMES, "poses": POSE_NAMES}
+        columns = {"states": STATE_NAMES, "inputs": self.input_names, "poses": POSE_NAMES}
         for field_name in ("time_s", "states", "inputs", "poses"):
             values = np.asarray(getattr(self, field_name))
             bad = ~np.isfinite(values)
@@ -66,43 +107,47 @@ class Episode:
 
 
 def pedal_scale(pedal: np.ndarray) -> np.ndarray:
-    """Signed pedal in [-1, 1]: throttle / 0.2 above zero, brake pressure / 9.1 MPa below.
-
-    The paper's per-step increments (throttle 0.004, brake 0.18 MPa) are both ~0.02 on this scale,
-    and throttle no longer occupies 2 % of the pedal's range after min-max normalization.
-    """
-    pedal = np.asarray(pedal, dtype=float)
-    return np.where(pedal >= 0, pedal / THROTTLE_MAX, pedal / BRAKE_MAX_MPA)
-
-
-def pedal_unscale(scaled: np.ndarray) -> np.ndarray:
-    scaled = np.asarray(scaled, dtype=float)
-    return np.where(scaled >= 0, scaled * THROTTLE_MAX, scaled * BRAKE_MAX_MPA)
+    """Signed pedal in [-1, 1]: throttle / 0.2 above zero, brake pressure / 9.1 MPa below."""
+    return SEDAN_INPUTS[1].feature(pedal)
 
 
 @dataclass(frozen=True)
 class MinMaxNormalizer:
     """The paper's min-max normalization (x - x_min) / (x_max - x_min), fitted on training data.
 
-    Inputs are first mapped to (steer_wheel_deg, signed pedal scale); see :func:`pedal_scale`.
+    Inputs are first mapped to their features by the dataset's ``channels`` (for the sedan:
+    steering-wheel degrees and the signed pedal scale, see :data:`SEDAN_INPUTS`); the channels
+    travel with the normalizer, so a saved model knows its inputs' names and scaling.
     """
 
     state_min: np.ndarray
     state_max: np.ndarray
     input_min: np.ndarray
     input_max: np.ndarray
+    channels: tuple[InputChannel, ...] = SEDAN_INPUTS
 
     @classmethod
     def fit(cls, episodes: Sequence[Episode]) -> MinMaxNormalizer:
         if not episodes:
             raise ValueError("cannot fit a normalizer on zero episodes")
+        channels = episodes[0].channels
         for episode in episodes:  # a NaN would pass min() and max() on to every model and file
             problem = episode.non_finite()
             if problem is not None:
                 raise ValueError(f"cannot fit a normalizer: episode {episode.name} {problem}")
+            if episode.channels != channels:
+                raise ValueError(
+                    f"cannot fit a normalizer: episode {episode.name} has inputs "
+                    f"({', '.join(episode.input_names)}), episode {episodes[0].name} "
+                    f"({', '.join(episodes[0].input_names)})"
+                )
         states = np.concatenate([e.states for e in episodes])
-        inputs = np.concatenate([_input_features(e.inputs) for e in episodes])
-        return cls(states.min(0), states.max(0), inputs.min(0), inputs.max(0))
+        features = _features(np.concatenate([e.inputs for e in episodes]), channels)
+        return cls(states.min(0), states.max(0), features.min(0), features.max(0), channels)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(channel.name for channel in self.channels)
 
     def _span(self, low: np.ndarray, high: np.ndarray) -> np.ndarray:
         return np.where(high - low > 1e-12, high - low, 1.0)
@@ -113,21 +158,44 @@ class MinMaxNormalizer:
     def states_inverse(self, z: np.ndarray) -> np.ndarray:
         return np.asarray(z) * self._span(self.state_min, self.state_max) + self.state_min
 
+    def input_features(self, u: np.ndarray) -> np.ndarray:
+        """The inputs ``u`` (..., m) in the units the models are fitted in (before min-max)."""
+        return _features(u, self.channels)
+
     def inputs(self, u: np.ndarray) -> np.ndarray:
-        return (_input_features(u) - self.input_min) / self._span(self.input_min, self.input_max)
+        span = self._span(self.input_min, self.input_max)
+        return (self.input_features(u) - self.input_min) / span
 
     def inputs_inverse(self, v: np.ndarray) -> np.ndarray:
         features = np.asarray(v) * self._span(self.input_min, self.input_max) + self.input_min
-        return np.stack([features[..., 0], pedal_unscale(features[..., 1])], axis=-1)
+        return np.stack([c.value(features[..., j]) for j, c in enumerate(self.channels)], axis=-1)
 
-    def to_dict(self) -> dict[str, list[float]]:
-        return {k: np.asarray(getattr(self, k)).tolist() for k in self.__dataclass_fields__}
+    def to_dict(self) -> dict[str, Any]:
+        values: dict[str, Any] = {k: np.asarray(getattr(self, k)).tolist() for k in _RANGES}
+        values["inputs"] = [dataclasses.asdict(c) for c in self.channels]
+        return values
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> MinMaxNormalizer:
-        return cls(**{k: np.asarray(values[k], dtype=float) for k in cls.__dataclass_fields__})
+        """The normalizer :meth:`to_dict` wrote; one without ``inputs`` (written before inputs
+        were described) is the sedan's."""
+        ranges = {k: np.asarray(values[k], dtype=float) for k in _RANGES}
+        described = values.get("inputs")
+        channels = (
+            SEDAN_INPUTS if described is None else tuple(InputChannel(**dict(c)) for c in described)
+        )
+        return cls(**ranges, channels=channels)
+
+    def same_as(self, other: MinMaxNormalizer) -> bool:
+        """Equal to the last bit: the same training drives give the same min and max."""
+        return self.channels == other.channels and all(
+            np.array_equal(getattr(self, k), getattr(other, k)) for k in _RANGES
+        )
 
 
-def _input_features(u: np.ndarray) -> np.ndarray:
+_RANGES = ("state_min", "state_max", "input_min", "input_max")
+
+
+def _features(u: np.ndarray, channels: Sequence[InputChannel]) -> np.ndarray:
     u = np.asarray(u, dtype=float)
-    return np.stack([u[..., 0], pedal_scale(u[..., 1])], axis=-1)
+    return np.stack([c.feature(u[..., j]) for j, c in enumerate(channels)], axis=-1)

@@ -67,7 +67,7 @@ import numpy as np
 from tqdm import tqdm
 
 from harness.core.contracts import Plant
-from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
 from harness.core.files import write_atomic, write_text_atomic
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
 from harness.plant.native import cache_dir
@@ -391,7 +391,9 @@ def _check_episode_file(path: Path, planned: int, dt: float) -> dict[str, Any]:
     return _entry(path, steps, steps < planned)
 
 
-def _read_episode(path: Path, name: str) -> Episode:
+def _read_episode(
+    path: Path, name: str, channels: tuple[InputChannel, ...] = SEDAN_INPUTS
+) -> Episode:
     """The episode in ``path``: every read of an episode file goes through here, so a NaN or an
     infinity in it is refused by file name before a normalizer, a fit or a manifest sees it.
 
@@ -404,9 +406,9 @@ def _read_episode(path: Path, name: str) -> Episode:
         inputs, poses = arrays["inputs"], arrays["poses"]
     steps = len(time_s) if time_s.ndim == 1 else -1
     shapes = (time_s.shape, states.shape, inputs.shape, poses.shape)
-    if shapes != ((steps,), (steps, 3), (steps, 2), (steps, 3)):
+    if shapes != ((steps,), (steps, 3), (steps, len(channels)), (steps, 3)):
         raise ValueError(f"holds arrays of shapes {shapes} (time_s, states, inputs, poses)")
-    episode = Episode(name, time_s, states, inputs, poses)
+    episode = Episode(name, time_s, states, inputs, poses, channels)
     problem = episode.non_finite()
     if problem is not None:
         raise ValueError(problem)
@@ -658,13 +660,15 @@ def _episodes_from_files(
     return episodes
 
 
-def _load_episode(directory: Path, name: str, manifest: dict[str, Any]) -> Episode:
+def _load_episode(directory: Path, name: str, manifest: Mapping[str, Any]) -> Episode:
     """Episode ``name``, whose file has passed its checksum: a file that still cannot be used is
     one the manifest vouches for (rebuilt from it by an older harness, or edited with it), so
     both must go for the collection to drive the episode again."""
     path = directory / manifest["episodes"][name]["file"]
+    described = manifest.get("inputs")  # a dataset of logs: its own inputs; else the sedan's
+    channels = SEDAN_INPUTS if described is None else tuple(InputChannel(**c) for c in described)
     try:
-        return _read_episode(path, name)
+        return _read_episode(path, name, channels)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
         raise DatasetError(
             f"data: {path}: {error}; delete it and {directory / MANIFEST}, then {RERUN} to "

@@ -17,8 +17,6 @@ import logging
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from harness.core.episode import MinMaxNormalizer
 from harness.data.store import Dataset
 from harness.plant import Sedan
@@ -64,7 +62,7 @@ def compare(
         for name, keys in (("plant", ("plant", "plant_fingerprint")), ("dataset", ("dataset",)))
         if any(trained_on[k] is not None and trained_on[k] != ours[k] for k in keys)
     ]
-    if not _same_normalizer(trained_normalizer, normalizer):
+    if not trained_normalizer.same_as(normalizer):
         differs.append("normalizer")
     if differs:
         what = " and ".join([", ".join(differs[:-1]), differs[-1]] if differs[:-1] else differs)
@@ -81,8 +79,3 @@ def compare(
             "s" if len(differs) == 1 else "",
         )
     return {"trained_on": trained_on, "this_run": ours, "differs": differs}
-
-
-def _same_normalizer(a: MinMaxNormalizer, b: MinMaxNormalizer) -> bool:
-    """Equal to the last bit: the same training drives give the same min and max."""
-    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in a.__dataclass_fields__)
