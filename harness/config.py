@@ -27,6 +27,7 @@ from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from harness.core.checks import is_number
+from harness.data.logs import LogsConfig
 from harness.data.store import DataConfig
 from harness.plant.params import SedanParams
 
@@ -50,6 +51,7 @@ def register_configs() -> None:
     store = ConfigStore.instance()
     store.store(group="plant", name="sedan_schema", node=SedanConfig)
     store.store(group="data", name="data_schema", node=DataConfig)
+    store.store(group="data", name="logs_schema", node=LogsConfig)
 
 
 # Keys that hold the control period: plant, data, model and controller share one (the model

@@ -9,9 +9,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from harness.data import coverage
 from harness.data.driver import DriverKnowledge
+from harness.data.logs import LogsConfig, import_logs
 from harness.data.store import DataConfig, Dataset, collect_counted, load
 from harness.plant import Sedan
 from harness.recorder import Recorder
@@ -21,13 +23,19 @@ log = logging.getLogger(__name__)
 
 
 def prepare(
-    plant: Sedan, data: DataConfig, recorder: Recorder, output_dir: Path
+    plant: Sedan, data: DataConfig | LogsConfig, recorder: Recorder, output_dir: Path
 ) -> tuple[Dataset, dict]:
-    """Collect or reuse; write the coverage figure; record every episode; return the summary."""
-    directory, collected = collect_counted(plant, data, DriverKnowledge.of(plant.params))
+    """Collect or reuse (a user's logs: check and store them); write the coverage figure; record
+    every episode; return the summary."""
+    friction: float | None
+    if isinstance(data, LogsConfig):
+        directory, collected, friction = import_logs(data), 0, None
+    else:
+        directory, collected = collect_counted(plant, data, DriverKnowledge.of(plant.params))
+        friction = plant.params.tire.road_friction
     dataset = load(directory)
     splits = {"train": dataset.train, "validation": dataset.validation, "test": dataset.test}
-    coverage.plot(splits, plant.params.tire.road_friction, output_dir / "data_coverage.png")
+    coverage.plot(splits, friction, output_dir / "data_coverage.png")
     step = data.record_every
     for split, episodes in splits.items():
         for e in episodes:
@@ -46,7 +54,9 @@ def prepare(
         "spun_episodes": sorted(n for n, v in dataset.manifest["episodes"].items() if v["spun"]),
         # Episodes this job drove; 0: stored already (or by another job of the sweep).
         "episodes_collected": collected,
-        "coverage": coverage.summary(dataset.episodes(), plant.params.tire.road_friction),
+        "period_s": dataset.period_s,
+        "inputs": list(dataset.normalizer.input_names),
+        "coverage": coverage.summary(dataset.episodes(), friction),
         "normalizer": dataset.normalizer.to_dict(),
     }
     return dataset, metrics
@@ -85,3 +95,11 @@ def reference_speeds(
         "reference_speed_range_mps": ranges,
         "outside_training_speed": outside,
     }
+
+
+def data_config(node: Any) -> DataConfig | LogsConfig:
+    """The ``data`` block as its schema's object: drives to collect, or a user's logs."""
+    value = node if isinstance(node, DataConfig | LogsConfig) else OmegaConf.to_object(node)
+    if not isinstance(value, DataConfig | LogsConfig):
+        raise ValueError(f"data must be a data or logs config, got {type(value).__name__}")
+    return value

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.core.episode import Episode, pedal_scale
+from harness.core.episode import SEDAN_INPUTS, Episode
 from harness.output import save_figure
 
 G = 9.81
@@ -59,20 +59,43 @@ def sawtooth_frames(
     return np.cumsum(marks)[:frames] > 0
 
 
-def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, float | int]:
-    """Coverage numbers, SI: frames, speed range, lateral acceleration relative to mu g."""
+def summary(
+    episodes: Sequence[Episode], road_friction: float | None
+) -> dict[str, float | int | dict[str, list[float]]]:
+    """Coverage numbers, SI: frames, speed range, lateral acceleration relative to mu g (where
+    the road's friction is known), the inputs' use (the sedan's pedal and steering; the range
+    of each input of a user's logs)."""
     states = np.concatenate([e.states for e in episodes])
     inputs = np.concatenate([e.inputs for e in episodes])
     a_y = np.abs(np.concatenate([lateral_accel(e) for e in episodes]))
     vx = states[:, 0]
-    limit = road_friction * G
     dt = float(episodes[0].time_s[1] - episodes[0].time_s[0])
+    common: dict[str, float | int | dict[str, list[float]]] = {
+        "episodes": len(episodes),
+        "frames": len(states),
+        "hours": float(len(states) * dt / 3600),
+        "vx_max_mps": float(vx.max()),
+        "vx_min_mps": float(vx.min()),
+        "start_speed_max_mps": float(max(e.states[0, 0] for e in episodes)),
+        "vx_p50_mps": float(np.median(vx)),
+        "vy_abs_max_mps": float(np.abs(states[:, 1]).max()),
+        "yaw_rate_abs_max_radps": float(np.abs(states[:, 2]).max()),
+        "lateral_accel_p99_mps2": float(np.percentile(a_y, 99)),
+        "lateral_accel_max_mps2": float(a_y.max()),
+    }
+    if road_friction is None or episodes[0].channels != SEDAN_INPUTS:
+        names = episodes[0].input_names
+        ranges = {
+            n: [float(inputs[:, j].min()), float(inputs[:, j].max())] for j, n in enumerate(names)
+        }
+        return common | {"input_range": ranges}
+    limit = road_friction * G
     sawtooth = sum(int(sawtooth_frames(e.inputs[:, 0], dt).sum()) for e in episodes)
     reversals = sum(len(steering_reversals(e.inputs[:, 0], dt)) for e in episodes)
     return {
         "episodes": len(episodes),
         "frames": len(states),
-        "hours": float(len(states) * 0.01 / 3600),
+        "hours": float(len(states) * dt / 3600),
         "vx_max_mps": float(vx.max()),
         "vx_min_mps": float(vx.min()),
         "start_speed_max_mps": float(max(e.states[0, 0] for e in episodes)),
@@ -94,7 +117,7 @@ def summary(episodes: Sequence[Episode], road_friction: float) -> dict[str, floa
     }
 
 
-def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float, path: Path) -> None:
+def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float | None, path: Path) -> None:
     """Like the paper's training-data figure: every path, the state distribution, a_y and u."""
     episodes = [e for split in splits.values() for e in split]
     states = np.concatenate([e.states for e in episodes])
@@ -130,19 +153,27 @@ def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float, path: Pa
 
     ax = fig.add_subplot(grid[1, 2])
     ax.hist(a_y / G, bins=80, log=True, color="tab:purple")
-    for sign in (-1, 1):
-        ax.axvline(sign * road_friction, color="k", ls=":")
-    ax.set(xlabel="lateral acceleration (g)", ylabel="frames", title="a_y, dotted: ±μg")
+    if road_friction is not None:
+        for sign in (-1, 1):
+            ax.axvline(sign * road_friction, color="k", ls=":")
+    title = "a_y, dotted: ±μg" if road_friction is not None else "a_y"
+    ax.set(xlabel="lateral acceleration (g)", ylabel="frames", title=title)
 
     ax = fig.add_subplot(grid[1, 3])
-    ax.hexbin(
-        inputs[:, 0], pedal_scale(inputs[:, 1]), gridsize=50, bins="log", cmap="magma", mincnt=1
-    )
-    ax.set(
-        xlabel="steering-wheel angle (deg)",
-        ylabel="throttle / 0.2  |  −brake / 9.1 MPa",
-        title="inputs (log count)",
-    )
-    fig.suptitle(f"Driving data: {len(states):,} frames at 10 ms")
+    channels = episodes[0].channels
+    labels: tuple[str, ...]
+    if channels == SEDAN_INPUTS:
+        labels = ("steering-wheel angle (deg)", "throttle / 0.2  |  −brake / 9.1 MPa")
+    else:
+        labels = tuple(c.name for c in channels[:2])
+    if len(channels) == 1:
+        ax.hist(inputs[:, 0], bins=80, log=True)
+        ax.set(xlabel=labels[0], ylabel="frames", title="input (log count)")
+    else:
+        second = channels[1].feature(inputs[:, 1])
+        ax.hexbin(inputs[:, 0], second, gridsize=50, bins="log", cmap="magma", mincnt=1)
+        ax.set(xlabel=labels[0], ylabel=labels[1], title="inputs (log count)")
+    dt = float(episodes[0].time_s[1] - episodes[0].time_s[0])
+    fig.suptitle(f"Driving data: {len(states):,} frames at {dt * 1000:g} ms")
     fig.tight_layout()
     save_figure(fig, path, dpi=100)

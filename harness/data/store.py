@@ -203,6 +203,17 @@ class Dataset:
     def key(self) -> str:
         return self.manifest["key"]
 
+    @property
+    def period_s(self) -> float:
+        """The model period: the time between two samples of every episode (to 9 digits: a
+        log's time column of 0.01 s steps sums to 0.05000000000001 s)."""
+        return float(f"{np.median(np.diff(self.train[0].time_s)):.9g}")
+
+    @property
+    def from_logs(self) -> bool:
+        """Whether these are a user's logs (:mod:`harness.data.logs`), not drives of our plant."""
+        return self.manifest.get("source") == "logs"
+
     def episodes(self) -> list[Episode]:
         return self.train + self.validation + self.test
 
@@ -241,8 +252,10 @@ def content_key(
     ]
 
 
-def dataset_root(data: DataConfig) -> Path:
-    return Path(data.root).expanduser() if data.root else cache_dir() / "datasets"
+def dataset_root(data: Any) -> Path:
+    """Where datasets of ``data`` (a :class:`DataConfig` or logs' config: its ``root``) live."""
+    root = getattr(data, "root", None)
+    return Path(root).expanduser() if root else cache_dir() / "datasets"
 
 
 def _episode_name(index: int) -> str:

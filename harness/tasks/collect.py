@@ -6,9 +6,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from harness.config import as_object
-from harness.data.collect import prepare
-from harness.data.store import DataConfig
+from harness.data.collect import data_config, prepare
 from harness.plant import Sedan
 from harness.recorder import Recorder
 
@@ -17,7 +15,7 @@ class Collect:
     """The data stage alone: ``python -m harness task=collect data=paper``."""
 
     def __init__(self, data: Mapping[str, Any]) -> None:
-        self.data = as_object(data, DataConfig)
+        self.data = data_config(data)
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         _, metrics = prepare(plant, self.data, recorder, output_dir)
