@@ -300,7 +300,7 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
         if bad.size:
             row, col = int(bad[0][0]), int(bad[0][1])
             name = names[what][col] if what in names else "time"
-            raise ValueError(f"has a non-finite {name} ({table[row, col]}) in data row {row + 1}")
+            raise ValueError(f"has a non-finite {name} ({grid[row, col]}) in data row {row + 1}")
     if len(time_s) < 2:
         raise ValueError(f"has {len(time_s)} rows; a drive needs at least 2")
     steps = np.diff(time_s)
