@@ -289,14 +289,10 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
     else:
         time_s = np.arange(len(states)) * float(logs.period_s or 0.0)
     names = {"states": STATE_NAMES, "inputs": tuple(logs.inputs), "poses": POSE_NAMES}
-    for what, values in (
-        ("time", time_s),
-        ("states", states),
-        ("inputs", inputs),
-        ("poses", poses),
-    ):
-        table = values.reshape(len(values), -1)
-        bad = np.argwhere(~np.isfinite(table))
+    arrays = {"time": time_s, "states": states, "inputs": inputs, "poses": poses}
+    for what, values in arrays.items():
+        grid = values.reshape(len(values), -1)
+        bad = np.argwhere(~np.isfinite(grid))
         if bad.size:
             row, col = int(bad[0][0]), int(bad[0][1])
             name = names[what][col] if what in names else "time"
