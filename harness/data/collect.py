@@ -45,6 +45,7 @@ def prepare(
                 e.states[::step],
                 e.inputs[::step],
                 e.poses[::step],
+                input_names=e.input_names,
                 extra={"lateral_accel_mps2": coverage.lateral_accel(e)[::step]},
             )
     metrics = {

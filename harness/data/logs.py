@@ -242,12 +242,13 @@ class _Table:
                 raise ValueError(f"has no array {array!r} (it has {', '.join(sorted(arrays))})")
             self.matrix = np.atleast_2d(np.asarray(arrays[array], dtype=float))
             return
+        # A column per variable: 1-D, or a MATLAB column or row vector (T x 1, 1 x T).
         self.named = {
             k: np.asarray(v, dtype=float).reshape(-1)
             for k, v in arrays.items()
-            if np.asarray(v).ndim <= 2 and min(np.asarray(v).shape or (1,)) == 1
+            if v.ndim == 1 or (v.ndim == 2 and 1 in v.shape)
         }
-        matrices = [k for k, v in arrays.items() if np.asarray(v).ndim == 2 and min(v.shape) > 1]
+        matrices = [k for k, v in arrays.items() if v.ndim == 2 and min(v.shape) > 1]
         if len(matrices) == 1:  # one table: columns by index too
             self.matrix = np.asarray(arrays[matrices[0]], dtype=float)
 
@@ -393,10 +394,12 @@ def _counts(weights: np.ndarray, files: int) -> list[int]:
     """Files per split in proportion to ``weights``, at least one each (largest remainders)."""
     if files < len(weights):
         raise DatasetError(f"data.split needs at least {len(weights)} files, found {files}")
-    exact = weights / weights.sum() * (files - len(weights))
-    counts = np.floor(exact).astype(int) + 1
-    for i in np.argsort(-(exact - np.floor(exact)))[: files - int(counts.sum())]:
-        counts[i] += 1
+    exact = weights / weights.sum() * files
+    counts = np.maximum(np.floor(exact).astype(int), 1)
+    while counts.sum() < files:
+        counts[int(np.argmax(exact - counts))] += 1
+    while counts.sum() > files:
+        counts[int(np.argmax(np.where(counts > 1, counts - exact, -np.inf)))] -= 1
     return [int(c) for c in counts]
 
 

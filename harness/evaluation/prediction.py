@@ -6,7 +6,7 @@ state under the recorded inputs, three ways, and returns RMSEs per state in SI u
 - ``rmse``: one open-loop rollout over the whole episode (the paper's Table of RMSEs);
 - ``rmse_window_<p>``: windows of ``window_steps`` steps tiling the episode, each re-initialised
   from the measured state (what an MPC with horizon p relies on);
-- ``rmse_window_<s>s``: the same with windows of ``window_seconds``.
+- ``rmse_window_<s>s``: the same with windows of each of ``window_seconds``.
 
 Row 0 of every rollout is the measured state itself and is left out of the RMSE. A model that
 diverges gives inf (written as null in ``metrics.json``).
@@ -100,25 +100,24 @@ def evaluate(
     episodes: Sequence[Episode],
     *,
     window_steps: int = 41,
-    window_seconds: float = 10.0,
+    window_seconds: float | Sequence[float] = 10.0,
     recorder: Recorder | None = None,
     output_dir: Path | None = None,
     prefix: str = "",
 ) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
     """RMSEs of every learner on every episode: ``{learner: {episode: {metric: {state: v}}}}``.
 
-    Metrics: ``rmse``, ``rmse_window_<window_steps>``, ``rmse_window_<window_seconds>s`` (see
-    the module docstring). Writes ``prediction_<episode>.png`` (truth and every learner's
-    open-loop prediction, as the paper's figure) into ``output_dir`` and one recording per
-    episode (``<prefix>prediction/<episode>``, predictions as ``extra/predicted_<learner>``).
+    Metrics: ``rmse``, ``rmse_window_<window_steps>``, ``rmse_window_<s>s`` for each ``s`` of
+    ``window_seconds`` (see the module docstring). Writes ``prediction_<episode>.png`` (truth
+    and every learner's open-loop prediction, as the paper's figure) into ``output_dir`` and one
+    recording per episode (``<prefix>prediction/<episode>``, predictions as
+    ``extra/predicted_<learner>``); ``recorder=None`` and ``output_dir=None`` write nothing.
     Use :func:`by_episode` for ``{episode: {learner: ...}}``.
     """
-    recorder = recorder or Recorder()
+    seconds = [window_seconds] if isinstance(window_seconds, int | float) else window_seconds
     results: dict[str, dict[str, dict[str, dict[str, float]]]] = {name: {} for name in learners}
-    seconds_key = f"rmse_window_{window_seconds:g}s"
     for episode in episodes:
         dt = float(np.median(np.diff(episode.time_s)))
-        seconds_steps = max(1, round(window_seconds / dt))
         predictions = {}
         for name, learner in learners.items():
             pred = open_loop(learner, episode)
@@ -129,16 +128,22 @@ def evaluate(
                 f"rmse_window_{window_steps}": rmse(
                     *_pair(windowed(learner, episode, window_steps), episode)
                 ),
-                seconds_key: rmse(*_pair(windowed(learner, episode, seconds_steps), episode)),
             }
-        recorder.rollout(
-            f"{prefix}prediction/{episode.name}",
-            episode.time_s,
-            episode.states,
-            episode.inputs,
-            poses=episode.poses,
-            overlays={f"predicted_{name}": _finite(p) for name, p in predictions.items()},
-        )
+            for s in seconds:
+                steps = max(1, round(s / dt))
+                results[name][episode.name][f"rmse_window_{s:g}s"] = rmse(
+                    *_pair(windowed(learner, episode, steps), episode)
+                )
+        if recorder is not None:
+            recorder.rollout(
+                f"{prefix}prediction/{episode.name}",
+                episode.time_s,
+                episode.states,
+                episode.inputs,
+                poses=episode.poses,
+                input_names=episode.input_names,
+                overlays={f"predicted_{name}": _finite(p) for name, p in predictions.items()},
+            )
         if output_dir is not None:
             plot_prediction(
                 episode, predictions, Path(output_dir) / f"prediction_{episode.name}.png"
@@ -236,6 +241,7 @@ def robustness(
             episode.states,
             episode.inputs,
             poses=episode.poses,
+            input_names=episode.input_names,
             overlays={f"mean_{name}": _finite(b[0]) for name, b in bands.items()},
         )
         if output_dir is not None:

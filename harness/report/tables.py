@@ -17,7 +17,7 @@ from harness.report.jobs import Run, common_overrides, variant
 
 STATES = ("vx", "vy", "yaw_rate")
 # Entries of a job's ``prediction`` section that are not test episodes.
-_NOT_EPISODES = frozenset({"step_response"})
+_NOT_EPISODES = frozenset({"step_response", "persistence"})
 
 
 @dataclass
@@ -92,6 +92,17 @@ def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
                 [learner, plant, varied or "—", episode, str(len(present))]
                 + [_mean_std(v.get(s) for v in present) for s in STATES]
             )
+    # Persistence (the state held) on the same drives: the bar beside every learner's rows. It
+    # has no fit, so every job of a plant and data reports the same numbers: one row each.
+    held: dict[tuple[str, str], Mapping[str, Any]] = {}
+    for job in jobs:
+        for episode, metrics in (_get(job.metrics, "prediction", "persistence") or {}).items():
+            if _get(metrics, metric) is not None:
+                held.setdefault((job.plant, episode), metrics[metric])
+    for (plant, episode), values in sorted(held.items()):
+        table.rows.append(
+            ["persistence", plant, "—", episode, "—"] + [_mean_std([values.get(s)]) for s in STATES]
+        )
     return table
 
 
@@ -436,6 +447,8 @@ def tables(runs: list[Run]) -> dict[str, Table]:
         "prediction": prediction_table(finished),
         "prediction_window_41": prediction_table(finished, "rmse_window_41"),
         "prediction_window_10s": prediction_table(finished, "rmse_window_10s"),
+        "prediction_window_3s": prediction_table(finished, "rmse_window_3s"),
+        "prediction_window_1.5s": prediction_table(finished, "rmse_window_1.5s"),
         "tracking": tracking_table(finished),
         "robustness": robustness_table(finished),
         "generalization": generalization_table(finished),

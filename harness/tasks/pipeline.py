@@ -42,10 +42,10 @@ from typing import Any
 import numpy as np
 
 from controllers.config import ControllerFactory, OwnModelFactory
-from harness.config import as_object
+from harness.core.checks import is_number
 from harness.core.contracts import LiftedModel, LinearizableModel
 from harness.core.episode import Episode
-from harness.data.collect import prepare, reference_speeds
+from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, drive_again
 from harness.evaluation import spectrum, step_response, training_report
@@ -57,8 +57,9 @@ from harness.recorder import Recorder
 from harness.references import CourseReference, Reference
 from harness.references.course import path_metrics, plot_course, record_course
 from harness.tasks import provenance
-from learners.base import Learner, check_same_learner
+from learners.base import Learner, check_inputs, check_same_learner
 from learners.base import load as load_learner
+from learners.persistence import Persistence
 
 log = logging.getLogger(__name__)
 
@@ -84,11 +85,11 @@ class Pipeline:
         other_plants: Mapping[str, Sedan] | None = None,
         model_path: str | None = None,
         prediction_window_steps: int = 41,
-        prediction_window_s: float = 10.0,
+        prediction_window_s: float | Sequence[float] = 10.0,
         references: Mapping[str, Reference] | None = None,
         robustness_repeats: int = 100,
     ) -> None:
-        self.data = as_object(data, DataConfig)
+        self.data = data_config(data)
         self.learner, self.learner_name = learner, learner_name
         self.controllers = {controller_name: controller} if controller is not None else {}
         for name, make in (extra_controllers or {}).items():
@@ -101,17 +102,26 @@ class Pipeline:
         self.model_path = model_path
         # Both before any data: a model file of another learner, a size beyond this machine.
         self.loaded = self._load(model_path, learner, learner_name)
-        if self.loaded is None:
-            learner.check_size(self.data.max_steps)
+        if self.loaded is None and isinstance(self.data, DataConfig):
+            learner.check_size(self.data.max_steps)  # logs: once they are read, before the fit
         _check_count("task.prediction_window_steps", prediction_window_steps)
-        if not (math.isfinite(prediction_window_s) and prediction_window_s > 0):
-            raise ValueError(f"task.prediction_window_s must be > 0 (got {prediction_window_s})")
+        windows = (
+            [prediction_window_s]
+            if isinstance(prediction_window_s, int | float)
+            else list(prediction_window_s)
+        )
+        for window in windows:
+            if not (is_number(window) and math.isfinite(window) and window > 0):
+                raise ValueError(
+                    f"task.prediction_window_s must be a number > 0 or a list of them (got "
+                    f"{prediction_window_s})"
+                )
         # null leaves a reference out (an experiment replacing the default's lane change)
         references = {k: v for k, v in (references or {}).items() if v is not None}
         for name, reference in references.items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
-        self.window_steps, self.window_s = int(prediction_window_steps), prediction_window_s
+        self.window_steps, self.windows_s = int(prediction_window_steps), windows
         self.references = references
         _check_count("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
@@ -127,6 +137,8 @@ class Pipeline:
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
+        if dataset.from_logs:
+            return self._on_logs(dataset, data_metrics, recorder, output_dir)
         data_metrics |= reference_speeds(self.references, plant.dt, dataset)
         if self.loaded is None:
             check_training_data(dataset)
@@ -158,6 +170,44 @@ class Pipeline:
             }
         return sections
 
+    def _on_logs(
+        self, dataset: Dataset, data_metrics: dict[str, Any], recorder: Recorder, output_dir: Path
+    ) -> dict[str, Any]:
+        """The pipeline on a user's logs: fit, predict the test logs and the spectrum at the
+        logs' period. What needs the car that made the logs (the step responses against it,
+        closed-loop tracking, other plants) is skipped, each with one line saying why."""
+        if self.loaded is None:
+            self.learner.check_size(max(len(e) for e in dataset.episodes()))
+            check_training_data(dataset)
+        sections: dict[str, Any] = {"data": data_metrics}
+        this_run = provenance.of_logs(dataset)
+        learner, sections["training"] = self._learner(dataset, this_run, recorder, output_dir)
+        sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
+        why = (
+            f"data={self.data.name} are logs, not drives of this harness's plant; this needs "
+            "the car that made them"
+        )
+        sections["prediction"]["step_response"] = {"skipped": why}
+        sections["spectrum"] = self._spectrum(learner, dataset.period_s, recorder, output_dir)
+        if learner.redraws_random_layer:
+            repeated = robustness(
+                {self.learner_name: learner},
+                dataset.test,
+                self.robustness_repeats,
+                recorder=recorder,
+                output_dir=output_dir,
+            )
+            sections["robustness"] = _one_learner(repeated, self.learner_name)
+        skipped = ["prediction.step_response"]
+        if self.controllers and self.references:
+            sections["tracking"] = {"skipped": why}
+            skipped.append("tracking")
+        if self.other_plants:
+            sections["generalization"] = {"skipped": why}
+            skipped.append("generalization")
+        log.info("%s skipped: %s", ", ".join(skipped), why)
+        return sections
+
     def _learner(
         self,
         dataset: Dataset,
@@ -171,6 +221,7 @@ class Pipeline:
         if self.loaded is not None:
             learner = self.loaded
             source = str(Path(str(self.model_path)).resolve())
+            check_inputs(learner, dataset.normalizer.input_names, f"task.model_path {source}")
         else:
             learner = training_report.fit(
                 self.learner,
@@ -211,12 +262,21 @@ class Pipeline:
             {self.learner_name: learner},
             episodes,
             window_steps=self.window_steps,
-            window_seconds=self.window_s,
+            window_seconds=self.windows_s,
             recorder=recorder,
             output_dir=output_dir,
             prefix=prefix,
         )
-        return _one_learner(predictions, self.learner_name)
+        section = _one_learner(predictions, self.learner_name)
+        # The bar every model must clear, on the same drives (``prediction.persistence``).
+        held = Persistence().fit([], [], learner.normalizer_)
+        section["persistence"] = evaluate(
+            {"persistence": held},
+            episodes,
+            window_steps=self.window_steps,
+            window_seconds=self.windows_s,
+        )["persistence"]
+        return section
 
     def _controller_models(self, learner: Learner, dataset: Dataset) -> dict[str, Learner | str]:
         """The model each controller runs on: the run's learner, or, for a controller that
@@ -365,6 +425,7 @@ class Pipeline:
         output_dir: Path,
     ) -> dict[str, Any]:
         """The model of this run's plant, on the test drives driven again on ``plant``."""
+        assert isinstance(self.data, DataConfig)  # logs never get here (``_on_logs``)
         episodes = drive_again(plant, self.data, DriverKnowledge.of(plant.params), dataset.test)
         directory = output_dir / "generalization" / name
         directory.mkdir(parents=True, exist_ok=True)

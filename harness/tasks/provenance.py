@@ -21,7 +21,7 @@ from harness.core.episode import MinMaxNormalizer
 from harness.data.store import Dataset
 from harness.plant import Sedan
 
-__all__ = ["compare", "of_run"]
+__all__ = ["compare", "of_logs", "of_run"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +38,11 @@ def of_run(plant: Sedan, dataset: Dataset) -> dict[str, Any]:
         "plant_fingerprint": hashlib.sha256(text.encode()).hexdigest()[:16],
         "dataset": dataset.key,
     }
+
+
+def of_logs(dataset: Dataset) -> dict[str, Any]:
+    """What a model fitted on a user's logs records: no plant, the dataset's key."""
+    return {"plant": None, "plant_fingerprint": None, "dataset": dataset.key}
 
 
 def compare(

@@ -1,0 +1,309 @@
+"""A user's driving logs become a dataset that every learner, the pipeline and the report use."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+from scipy.io import savemat
+
+from harness.core.episode import InputChannel, MinMaxNormalizer
+from harness.data.ddk import authors_split
+from harness.data.logs import LogsConfig, import_logs, read_log
+from harness.data.store import DatasetError, load
+from harness.evaluation.prediction import evaluate
+from learners.dictionaries import ThinPlateRBF
+from learners.edmd import EDMD
+from learners.input_edmd import InputEDMD
+from learners.persistence import Persistence
+
+PERIOD = 0.01
+COLUMNS = ["t", "speed_kmh", "vy", "r", "steer", "throttle", "brake"]
+
+
+def drive(seed: int, rows: int = 400) -> np.ndarray:
+    """(rows, 7): time, vx in km/h, vy, r, and three inputs of a stable linear car at 10 ms."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-1, 1, (rows // 20 + 1, 3)), 20, axis=0)[:rows]
+    x = np.zeros((rows, 3))
+    x[0] = [15.0, 0.0, 0.0]
+    for k in range(rows - 1):
+        vx, vy, r = x[k]
+        x[k + 1] = [
+            vx + PERIOD * (0.8 * u[k, 1] - 1.5 * u[k, 2] - 0.02 * (vx - 15.0)),
+            vy + PERIOD * (-2.0 * vy - 4.0 * r + 3.0 * u[k, 0]),
+            r + PERIOD * (0.5 * vy - 3.0 * r + 2.0 * u[k, 0]),
+        ]
+    table = np.column_stack([np.arange(rows) * PERIOD, x, u])
+    table[:, 1] *= 3.6
+    return table
+
+
+def logs_config(path: Path, **changes: object) -> LogsConfig:
+    values: dict[str, object] = {
+        "path": str(path),
+        "files": ["*.csv"],
+        "time": {"column": "t"},
+        "model_period_s": 0.05,
+        "states": {"vx": {"column": "speed_kmh", "scale": 1 / 3.6}, "vy": "vy", "yaw_rate": "r"},
+        "inputs": {"steer": "steer", "throttle": "throttle", "brake": "brake"},
+        "split": {"train": 0.6, "validation": 0.2, "test": 0.2},
+        "root": str(path / "store"),
+    }
+    return LogsConfig(**(values | changes))  # type: ignore[arg-type]
+
+
+def write_csv(path: Path, table: np.ndarray, header: bool = True) -> Path:
+    text = ",".join(COLUMNS) + "\n" if header else ""
+    text += "\n".join(",".join(f"{v:.17g}" for v in row) for row in table) + "\n"
+    path.write_text(text)
+    return path
+
+
+def expected(table: np.ndarray, every: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    kept = table[::every]
+    states = np.column_stack([kept[:, 1] / 3.6, kept[:, 2], kept[:, 3]])
+    return kept[:, 0] - kept[0, 0], states, kept[:, 4:7]
+
+
+def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> None:
+    """CSV by name and by index, npz by variable and as one array, MATLAB v5, Parquet: the same
+    drive, scaled to SI and decimated to the model period, inputs held (every 5th sample)."""
+    table = drive(0)
+    write_csv(tmp_path / "named.csv", table)
+    write_csv(tmp_path / "plain.csv", table, header=False)
+    np.savez(tmp_path / "variables.npz", **{c: table[:, j] for j, c in enumerate(COLUMNS)})
+    np.savez(tmp_path / "matrix.npz", log=table)
+    savemat(tmp_path / "matrix.mat", {"log": table})
+    by_name = logs_config(tmp_path)
+    by_index = logs_config(
+        tmp_path,
+        array="log",
+        time={"column": 0},
+        states={"vx": {"column": 1, "scale": 1 / 3.6}, "vy": 2, "yaw_rate": 3},
+        inputs={"steer": 4, "throttle": 5, "brake": 6},
+    )
+    cases = [
+        ("named.csv", by_name),
+        ("plain.csv", by_index),
+        ("variables.npz", by_name),
+        ("matrix.npz", by_index),
+        ("matrix.mat", by_index),
+    ]
+    parquet = pytest.importorskip("pyarrow.parquet")
+    import pyarrow
+
+    columns = {c: table[:, j] for j, c in enumerate(COLUMNS)}
+    parquet.write_table(pyarrow.table(columns), tmp_path / "table.parquet")
+    cases.append(("table.parquet", by_name))
+    time_s, states, inputs = expected(table)
+    for name, config in cases:
+        episode = read_log(tmp_path / name, config)
+        assert episode.name == Path(name).stem
+        np.testing.assert_allclose(episode.time_s, time_s, rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(episode.states, states, rtol=1e-12, err_msg=name)
+        np.testing.assert_array_equal(episode.inputs, inputs, err_msg=name)
+        assert episode.input_names == ("steer", "throttle", "brake")
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ("missing", r"b\.csv has no column 'r' for states\.yaw_rate"),
+        ("nan", r"b\.csv has a non-finite vy \(nan\) in data row 8"),
+        ("time", r"b\.csv has time that does not increase at data row 11"),
+        ("period", r"b\.csv is sampled every 0\.03 s, which does not divide .*0\.05"),
+    ],
+)
+def test_a_bad_log_fails_in_one_line_naming_the_file(
+    tmp_path: Path, damage: str, message: str
+) -> None:
+    for i, name in enumerate("acde"):
+        write_csv(tmp_path / f"{name}.csv", drive(i))
+    table = drive(9)
+    if damage == "nan":
+        table[7, 2] = np.nan
+    elif damage == "time":
+        table[10, 0] = table[9, 0]
+    elif damage == "period":
+        table[:, 0] *= 3
+    write_csv(tmp_path / "b.csv", table)
+    if damage == "missing":
+        text = (tmp_path / "b.csv").read_text().replace(",r,", ",yaw,", 1)
+        (tmp_path / "b.csv").write_text(text)
+    with pytest.raises(DatasetError, match=message) as info:
+        import_logs(logs_config(tmp_path))
+    assert "\n" not in str(info.value)
+    assert not list((tmp_path / "store").glob("*/manifest.json"))  # nothing stored half
+
+
+def test_logs_are_stored_once_by_content_and_split_by_seed_or_by_file(tmp_path: Path) -> None:
+    for i in range(5):
+        write_csv(tmp_path / f"run_{i}.csv", drive(i))
+    config = logs_config(tmp_path)
+    directory = import_logs(config)
+    dataset = load(directory)
+    assert dataset.from_logs and dataset.period_s == 0.05
+    assert sorted(e.name for e in dataset.episodes()) == [f"run_{i}" for i in range(5)]
+    assert [len(s) for s in (dataset.train, dataset.validation, dataset.test)] == [3, 1, 1]
+    assert dataset.normalizer.input_names == ("steer", "throttle", "brake")
+    assert dataset.normalizer.same_as(MinMaxNormalizer.fit(dataset.train))
+    assert import_logs(config) == directory  # the same files and config: reused
+    write_csv(tmp_path / "run_0.csv", drive(7))
+    assert import_logs(config) != directory  # other bytes: another dataset
+    by_file = logs_config(
+        tmp_path,
+        split={"train": ["run_[0-2].csv"], "validation": ["run_3.csv"], "test": ["run_4.csv"]},
+    )
+    split = load(import_logs(by_file)).manifest["split"]
+    assert split == {
+        "train": ["run_0", "run_1", "run_2"],
+        "validation": ["run_3"],
+        "test": ["run_4"],
+    }
+    twice = logs_config(
+        tmp_path, split={"train": ["*"], "validation": ["run_3.csv"], "test": ["run_4.csv"]}
+    )
+    with pytest.raises(DatasetError, match="run_3.csv is in train and in validation"):
+        import_logs(twice)
+
+
+def test_learners_fit_and_predict_three_inputs_and_persistence_has_its_closed_form(
+    tmp_path: Path,
+) -> None:
+    for i in range(5):
+        write_csv(tmp_path / f"run_{i}.csv", drive(i))
+    dataset = load(import_logs(logs_config(tmp_path)))
+    for learner in (EDMD(ThinPlateRBF(20)), InputEDMD(ThinPlateRBF(20, center_draw="samples"), ridge=[1e-6, 1e-3])):
+        model = learner.fit(dataset.train, dataset.validation, dataset.normalizer)
+        episode = dataset.test[0]
+        predicted = model.predict(episode.states[0], episode.inputs[:-1])
+        assert predicted.shape == episode.states.shape and np.isfinite(predicted).all()
+        with pytest.raises(ValueError, match=r"inputs \(\.\.\., T, 3\)"):
+            model.predict(episode.states[0], episode.inputs[:-1, :2])
+    # Persistence on a ramp x_k = k c: each window of p steps from its start errs by c, 2c, ...
+    ramp = dataset.test[0]
+    steps = np.arange(len(ramp))[:, None] * np.array([[0.1, 0.01, 0.001]])
+    ramp = type(ramp)(ramp.name, ramp.time_s, steps, ramp.inputs, ramp.poses, ramp.channels)
+    held = Persistence().fit([], [], dataset.normalizer)
+    result = evaluate({"p": held}, [ramp], window_steps=4, window_seconds=[])["p"][ramp.name]
+    whole = np.sqrt(np.mean(np.arange(1, len(ramp)) ** 2))
+    np.testing.assert_allclose(list(result["rmse"].values()), whole * np.array([0.1, 0.01, 0.001]))
+    rows = np.setdiff1d(np.arange(len(ramp)), np.arange(0, len(ramp), 4))
+    window = np.sqrt(np.mean((rows % 4) ** 2))
+    np.testing.assert_allclose(
+        list(result["rmse_window_4"].values()), window * np.array([0.1, 0.01, 0.001])
+    )
+
+
+def ddk_clone(root: Path, rows: int = 300) -> Path:
+    """The DDK repository's layout with 38 small synthetic runs (theirs are not ours to ship):
+    raw ``data_unit_<i>.mat`` (30 columns) and the authors' normalized copies, named by split."""
+    raw, normalized = root / "CarsimDatasets", root / "MPC" / "CarsimDClassSUVDatasets"
+    raw.mkdir(parents=True)
+    normalized.mkdir(parents=True)
+    roles = {1: "test_0", 24: "test_1", 31: "test_2", 38: "test_3"}
+    roles |= {10: "val_0", 14: "val_1", 25: "val_2", 35: "val_3"}
+    train = iter(range(30))
+    for i in range(1, 39):
+        table = drive(i, rows)
+        data = np.zeros((rows, 30))
+        data[:, 0] = table[:, 0] + PERIOD
+        data[:, 1:4] = np.random.default_rng(i).normal(size=(rows, 3)).cumsum(0)
+        data[:, 4], data[:, 5:7] = table[:, 1] / 3.6, table[:, 2:4]
+        data[:, 27:30] = table[:, 4:7] * [0.05, 0.1, 0.5]
+        savemat(raw / f"data_unit_{i}.mat", {"data": data})
+        role = roles.get(i) or str(next(train))
+        savemat(
+            normalized / f"Carsim_DClassSUV_{role}.mat", {"Pos": data[:, 1:4], "X": data[:, 4:7]}
+        )
+    return root
+
+
+def test_the_authors_split_is_matched_exactly_and_is_the_presets(tmp_path: Path) -> None:
+    clone = ddk_clone(tmp_path / "DDK")
+    split = authors_split(clone)
+    assert split["test"] == [
+        "data_unit_1.mat",
+        "data_unit_24.mat",
+        "data_unit_31.mat",
+        "data_unit_38.mat",
+    ]
+    assert split["validation"] == [
+        "data_unit_10.mat",
+        "data_unit_14.mat",
+        "data_unit_25.mat",
+        "data_unit_35.mat",
+    ]
+    assert len(split["train"]) == 30
+    with initialize_config_module(config_module="conf", version_base=None):
+        cfg = compose("config", overrides=["data=ddk_carsim", f"data.path={clone}"])
+    preset = OmegaConf.to_object(cfg.data)
+    assert isinstance(preset, LogsConfig)
+    assert {k: [p.split("/")[-1] for p in v] for k, v in preset.split.items()} == split
+    # A copy whose run is missing, or two runs with one pose track: refused, not guessed.
+    twin = clone / "CarsimDatasets" / "data_unit_2.mat"
+    twin.write_bytes((clone / "CarsimDatasets" / "data_unit_1.mat").read_bytes())
+    with pytest.raises(ValueError, match=r"matches [02] raw runs"):
+        authors_split(clone)
+
+
+def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path) -> None:
+    """data=ddk_carsim on a synthetic clone: fit, predict (whole runs, windows, persistence),
+    spectrum; step responses and tracking skipped with the reason, at the logs' 50 ms."""
+    clone = ddk_clone(tmp_path / "DDK")
+    run_dir = tmp_path / "run"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "harness",
+            "data=ddk_carsim",
+            f"data.path={clone}",
+            f"data.root={tmp_path}/store",
+            "learner=input_edmd",
+            "learner.dictionary.num_centers=20",
+            "recorder=none",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["data"]["inputs"] == ["front_wheel_angle_rad", "throttle", "brake_mpa"]
+    assert metrics["data"]["period_s"] == 0.05
+    assert metrics["data"]["split"]["test"] == [
+        "data_unit_1",
+        "data_unit_24",
+        "data_unit_31",
+        "data_unit_38",
+    ]
+    prediction = metrics["prediction"]
+    for episode in metrics["data"]["split"]["test"]:
+        for table in (prediction[episode], prediction["persistence"][episode]):
+            assert set(table) >= {"rmse", "rmse_window_41", "rmse_window_3s", "rmse_window_1.5s"}
+        # On a car driven by changing inputs the model beats holding the state.
+        assert (
+            prediction[episode]["rmse_window_3s"]["vx"]
+            < prediction["persistence"][episode]["rmse_window_3s"]["vx"]
+        )
+    assert "needs the car that made them" in prediction["step_response"]["skipped"]
+    assert "needs the car that made them" in metrics["tracking"]["skipped"]
+    assert metrics["spectrum"]
+    model = run_dir / "model_input_edmd.pt"
+    from learners import load as load_learner
+
+    assert load_learner(model).normalizer_.channels == (
+        InputChannel("front_wheel_angle_rad"),
+        InputChannel("throttle"),
+        InputChannel("brake_mpa"),
+    )
