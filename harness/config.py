@@ -84,6 +84,8 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
         full_key = f"{path}.{key}" if path else str(key)
         if structured and key not in known:
             raise ValueError(f"unknown key {full_key}; known keys: {', '.join(known)}")
+        if structured and OmegaConf.is_missing(node, key):  # ``???``: the user must say it
+            raise ValueError(f"{full_key} must be given (it has no default): add {full_key}=...")
         if _not_checked_here(node, key, full_key):
             continue
         child = node[key]

@@ -23,6 +23,7 @@ from controllers import DEMPCConfig
 from harness.config import validate
 from harness.core.contracts import Plant
 from harness.core.paths import CONF_DIR
+from harness.data.logs import LogsConfig
 from harness.data.store import DataConfig
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
@@ -33,7 +34,7 @@ from harness.tasks.collect import Collect
 from harness.tasks.pipeline import Pipeline
 from learners import Learner
 
-SCHEMAS = {"plant": SedanParams, "data": DataConfig}
+SCHEMAS = {"plant": SedanParams, "data": (DataConfig, LogsConfig)}
 CONFIGS = [
     (group, path.stem) for group in SCHEMAS for path in sorted((CONF_DIR / group).glob("*.yaml"))
 ]
@@ -53,10 +54,18 @@ def test_the_three_plants_exist() -> None:
 def test_every_plant_and_data_config_composes_and_converts_to_its_schema(
     group: str, name: str
 ) -> None:
-    cfg = compose_config(f"{group}={name}")
+    # A user's logs (``- logs_schema``) need the directory they are in: any one composes.
+    logs = "logs_schema" in (CONF_DIR / group / f"{name}.yaml").read_text()
+    cfg = compose_config(f"{group}={name}", *(["data.path=."] if logs else []))
     validate(cfg)
     block = OmegaConf.to_object(cfg[group])
     assert isinstance(block, SCHEMAS[group]) and block.name == name
+
+
+def test_logs_without_their_directory_are_refused_in_one_line() -> None:
+    with pytest.raises(ValueError, match=r"^data\.path must be given") as info:
+        validate(compose_config("data=ddk_carsim"))
+    assert "\n" not in str(info.value)
 
 
 @pytest.mark.parametrize("name", PLANTS)
@@ -215,7 +224,7 @@ def test_the_config_list_covers_every_group() -> None:
 # What each group's option builds: the contracts of harness/core/contracts.py where there is one.
 BUILDS: dict[str, type | tuple[type, ...]] = {
     "plant": Plant,
-    "data": DataConfig,
+    "data": (DataConfig, LogsConfig),
     "learner": Learner,
     "controller": DEMPCConfig,
     "task": (Pipeline, Characterize, Collect),
@@ -247,7 +256,8 @@ def test_every_config_file_composes_validates_and_builds(group: str, name: str) 
         cfg = _compose_as_the_app(f"+reference@task.references.probe={name}")
         node = cfg.task.references.probe
     else:
-        cfg = _compose_as_the_app(f"{group}={name}")
+        logs = group == "data" and "logs_schema" in (CONF_DIR / "data" / f"{name}.yaml").read_text()
+        cfg = _compose_as_the_app(f"{group}={name}", *(["data.path=."] if logs else []))
         node = cfg.task if group == "experiment" else cfg[group]
     validate(cfg)
     built = OmegaConf.to_object(node) if group == "data" else instantiate(node)
