@@ -3,29 +3,40 @@
 What a vehicle engineer writes before any learning. Lateral: the linear single-track model with
 axle cornering stiffnesses, in the measured speed vx (w = max(vx, min_speed_mps))::
 
-    α_f = δ − (vy + a r) / w,   α_r = −(vy − b r) / w,   δ = steer_wheel / i_s
+    α_f = δ − (vy + a r) / w,   α_r = −(vy − b r) / w,   δ = steer / i_s
     vy' = (C_f α_f + C_r α_r) / m − vx r
     r'  = (a C_f α_f − b C_r α_r) / I_z
 
-Longitudinal, first order in vx with the pedal split into throttle p⁺ and brake p⁻ (signed
-pedal scale, as the normalizer's)::
+Expanded, both are linear in δ, vy / w and r / w, with six coefficients (the regression form
+the model runs in)::
 
-    vx' = vy r + c_0 + c_2 vx² + g_1 p⁺ + g_2 p⁺ / w + g_3 p⁻
+    vy' = θ_1 δ + θ_2 vy / w + θ_3 r / w − vx r,     r' = θ_4 δ + θ_5 vy / w + θ_6 r / w
 
-(rolling resistance, aerodynamic drag, a throttle force between constant torque g_1 and
-constant power g_2 / v, brake). One Euler step of dt (the data's sampling period) is the model.
+Longitudinal, first order in vx, with every other input split into its positive and negative
+parts f⁺, f⁻ (the sedan's signed pedal scale: throttle and brake; a log's throttle and brake
+columns each)::
 
-Measured, as a person would with a tape and a set of axle scales: the CG's distances to the
-front and rear axles, a and b (``cg_to_front_m``, ``cg_to_rear_m``: wheelbase and axle loads),
-and, for reporting only, the mass. Identified by least squares on the training episodes
-(samples at vx >= ``min_speed_mps`` and, for the lateral and yaw equations, in the tyres'
-linear range |ay| <= ``max_lateral_accel_mps2``; nothing is read from the plant's
-configuration): the lateral and yaw equations together, linear in (C_f / m, C_r / m,
-C_f / (m i_s)) for a given m / I_z, by separable least squares over m / I_z (this gives the
-cornering stiffnesses per unit mass, the steering ratio and the yaw inertia per unit mass);
-then the longitudinal equation, linear in (c_0, c_2, g_1, g_2, g_3).
-The mass cancels: it only converts the fitted per-mass values into N/rad and kg·m² in
-:attr:`SingleTrack.parameters`.
+    vx' = vy r + c_0 + c_2 vx² + Σ_j (g_j f_j⁺ + p_j f_j⁺ / w + b_j f_j⁻)
+
+(rolling resistance, aerodynamic drag, a force between constant torque g and constant power
+p / v, brake). The first input is the steering angle: in degrees where its name ends in
+``_deg`` (the sedan's ``steer_wheel_deg``), else in radians.
+
+Identified by least squares on the training episodes' one-step derivatives (samples at vx >=
+``min_speed_mps`` and, for the lateral and yaw equations, in the tyres' linear range |ay| <=
+``max_lateral_accel_mps2``; nothing is read from the plant's configuration). Where a and b are
+measured (``cg_to_front_m``, ``cg_to_rear_m``: tape and axle scales), the lateral and yaw
+equations are fitted together, linear in (C_f / m, C_r / m, C_f / (m i_s)) for a given m / I_z,
+by separable least squares over m / I_z; the physical values follow (:attr:`parameters`).
+Where they are not (``null``: a user's logs of a car nobody measured), the six θ are fitted
+directly, and a and b are recovered from them. The mass cancels: it only converts per-mass
+values into N/rad and kg·m².
+
+Discretized at the data's period h by ``substeps_`` explicit Euler steps of h / n: n is the
+smallest that keeps Euler stable, with a factor-2 margin, for every eigenvalue of the lateral
+dynamics between min_speed_mps and the fastest training speed. At 10 ms the sedan needs one
+(the plain Euler step); one Euler step of 50 ms at 3 m/s has |1 + hλ| > 1, and vy grew to 10⁶
+within 3 s on the DDK CarSim runs.
 
 Besides a :class:`~learners.base.Learner` (``fit``/``predict``, so it has rows in the
 prediction and step-response tables), the model is a
@@ -43,45 +54,77 @@ import numpy as np
 import torch
 from scipy.optimize import minimize_scalar
 
-from harness.core.episode import Episode, MinMaxNormalizer, pedal_scale
+from harness.core.episode import SEDAN_INPUTS, Episode, MinMaxNormalizer
 from learners.base import Learner, Shape, check_fit_data, check_positive, check_rollout_args
 
-__all__ = ["NAMES", "SingleTrack"]
+__all__ = ["SingleTrack", "coefficient_names", "form_of"]
 
 LATERAL = ("front_per_mass", "rear_per_mass", "steer_per_mass")  # C_f/m, C_r/m, C_f/(m i_s)
 YAW = ("mass_per_inertia",)  # m / I_z
-LONGITUDINAL = ("rolling", "drag", "throttle", "throttle_power", "brake")  # c_0 c_2 g_1 g_2 g_3
-NAMES = LATERAL + YAW + LONGITUDINAL
+FORM = ("vy_steer", "vy_vy", "vy_r", "r_steer", "r_vy", "r_r")  # θ_1 .. θ_6
+LONGITUDINAL = ("rolling", "drag", "throttle", "throttle_power", "brake")  # the sedan's c_0 .. b
+MAX_SUBSTEPS = 50
 _Maps = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def coefficient_names(input_names: Sequence[str]) -> tuple[str, ...]:
+    """θ_1 .. θ_6, c_0, c_2, then (g, p, b) of every input after the steering."""
+    per_input = tuple(
+        f"{name}_{part}" for name in input_names[1:] for part in ("on", "on_power", "off")
+    )
+    return (*FORM, "rolling", "drag", *per_input)
+
+
+def form_of(
+    physics: Mapping[str, float], a: float, b: float
+) -> tuple[float, float, float, float, float, float]:
+    """θ_1 .. θ_6 of the single-track model with C_f/m, C_r/m, C_f/(m i_s), m/I_z, a and b."""
+    front, rear, steer = (physics[k] for k in LATERAL)
+    k = physics["mass_per_inertia"]
+    moment = a * front - b * rear
+    return (
+        steer,
+        -(front + rear),
+        -moment,
+        k * a * steer,
+        -k * moment,
+        -k * (a * a * front + b * b * rear),
+    )
 
 
 class SingleTrack(Learner):
     """The linear single-track model plus a first-order longitudinal channel (module docstring).
 
     Args:
-        cg_to_front_m, cg_to_rear_m: a and b, measured (tape and axle scales).
+        cg_to_front_m, cg_to_rear_m: a and b, measured (tape and axle scales); both null:
+            identified from the data.
         mass_kg: measured; used only to report C_f, C_r (N/rad) and I_z (kg m²).
         min_speed_mps: below it the lateral terms use this speed (1/vx stays bounded), and
             samples slower than it do not enter the lateral fit.
         max_lateral_accel_mps2: the lateral and yaw fits use samples below this lateral
             acceleration only (the tyres' linear range, about 0.4 g).
 
-    Fitted attributes: ``coefficients_`` (len(NAMES),), ``dt_`` (s), ``normalizer_``;
-    ``C_`` = I and ``lift`` = the normalization (a lifted state of the state itself).
+    Fitted attributes: ``coefficients_`` (:func:`coefficient_names`), ``dt_`` (s),
+    ``substeps_``, ``normalizer_``; ``C_`` = I and ``lift`` = the normalization.
     """
 
     name: ClassVar[str] = "single_track"
 
     def __init__(
         self,
-        cg_to_front_m: float = 1.15,
-        cg_to_rear_m: float = 1.55,
+        cg_to_front_m: float | None = 1.15,
+        cg_to_rear_m: float | None = 1.55,
         mass_kg: float = 1500.0,
         min_speed_mps: float = 3.0,
         max_lateral_accel_mps2: float = 4.0,
     ) -> None:
-        self.a = check_positive("cg_to_front_m", cg_to_front_m)
-        self.b = check_positive("cg_to_rear_m", cg_to_rear_m)
+        if (cg_to_front_m is None) != (cg_to_rear_m is None):
+            raise ValueError(
+                "learner.cg_to_front_m and learner.cg_to_rear_m must both be given (measured) "
+                "or both be null (identified from the data)"
+            )
+        self.a = None if cg_to_front_m is None else check_positive("cg_to_front_m", cg_to_front_m)
+        self.b = None if cg_to_rear_m is None else check_positive("cg_to_rear_m", cg_to_rear_m)
         self.mass_kg = check_positive("mass_kg", mass_kg)
         self.min_speed = check_positive("min_speed_mps", min_speed_mps)
         self.max_lateral_accel = check_positive("max_lateral_accel_mps2", max_lateral_accel_mps2)
@@ -93,8 +136,28 @@ class SingleTrack(Learner):
             "max_lateral_accel_mps2": self.max_lateral_accel,
         }
         self.C_ = np.eye(3)
+        self.substeps_ = 1
         self._maps: tuple[MinMaxNormalizer, _Maps] | None = None
         self._floats: tuple[float, ...] = ()
+
+    @classmethod
+    def of_physics(
+        cls,
+        physics: Mapping[str, float],
+        dt: float,
+        a: float = 1.15,
+        b: float = 1.55,
+        **kwargs: Any,
+    ) -> SingleTrack:
+        """The sedan-input model (steering wheel in degrees, signed pedal) with the given
+        C_f/m, C_r/m, C_f/(m i_s), m/I_z and longitudinal coefficients (``LATERAL``, ``YAW``,
+        ``LONGITUDINAL``): a known model, as the tests and benches drive it."""
+        model = cls(cg_to_front_m=a, cg_to_rear_m=b, **kwargs)
+        longitudinal = [physics[k] for k in LONGITUDINAL]
+        model.coefficients_ = np.array([*form_of(physics, a, b), *longitudinal], dtype=np.float64)
+        model.dt_ = float(dt)
+        model.substeps_ = model._stable_substeps(40.0)
+        return model
 
     # -- identification ---------------------------------------------------------------------
 
@@ -105,37 +168,54 @@ class SingleTrack(Learner):
         check_fit_data(train, validation, normalizer, self.name)
         steps = np.concatenate([np.diff(e.time_s) for e in train])
         dt = float(np.median(steps))
+        self.normalizer_ = normalizer  # the inputs' names say the steering's unit
         x = np.concatenate([e.states[:-1] for e in train])
-        u = np.concatenate([_features(e.inputs[:-1]) for e in train])
+        u = np.concatenate([normalizer.input_features(e.inputs[:-1]) for e in train])
         rate = np.concatenate([np.diff(e.states, axis=0) for e in train]) / dt
         vx, vy, r = x.T
         lateral_accel = rate[:, 1] + vx * r
         # The linear tyre range: where a linear single-track model is meant to hold.
         moving = (vx >= self.min_speed) & (np.abs(lateral_accel) <= self.max_lateral_accel)
-        if moving.sum() < 10 * len(NAMES):
+        needed = 10 * len(coefficient_names(normalizer.input_names))
+        if moving.sum() < needed:
             raise ValueError(
                 f"single_track: only {int(moving.sum())} training samples at vx >= "
                 f"{self.min_speed} m/s (learner.min_speed_mps) and |ay| <= "
                 f"{self.max_lateral_accel} m/s² (learner.max_lateral_accel_mps2); too few to "
-                f"identify {len(NAMES)} parameters"
+                f"identify {needed // 10} parameters"
             )
-        front, rear, steer, mass_per_inertia = self._fit_lateral(
-            x[moving], u[moving], lateral_accel[moving], rate[moving, 2]
-        )
+        delta = u[moving, 0] * self._steer_to_rad()
+        if self.a is not None and self.b is not None:
+            front, rear, steer, mass_per_inertia = self._fit_lateral(
+                x[moving], delta, lateral_accel[moving], rate[moving, 2], self.a, self.b
+            )
+            physics = dict(zip(LATERAL + YAW, (front, rear, steer, mass_per_inertia), strict=True))
+            form = form_of(physics, self.a, self.b)
+        else:
+            w = np.maximum(vx[moving], self.min_speed)
+            regressors = np.column_stack([delta, vy[moving] / w, r[moving] / w])
+            form = (
+                *_lstsq(regressors, lateral_accel[moving]),
+                *_lstsq(regressors, rate[moving, 2]),
+            )
         rolling_regime = vx > 0.5  # at standstill the brakes hold the car: no dynamics to fit
         longitudinal = self._longitudinal_regressors(x, u)[rolling_regime]
         target = (rate[:, 0] - vy * r)[rolling_regime]
         longitudinal_fit = _lstsq(longitudinal, target)
-        self.coefficients_ = np.array(
-            [front, rear, steer, mass_per_inertia, *longitudinal_fit], dtype=np.float64
-        )
+        self.coefficients_ = np.array([*form, *longitudinal_fit], dtype=np.float64)
         self.dt_ = dt
-        self.normalizer_ = normalizer
         self._maps = None  # new coefficients: the cached maps and floats are rebuilt
+        self.substeps_ = self._stable_substeps(float(vx.max()))
         return self
 
+    @staticmethod
     def _fit_lateral(
-        self, x: np.ndarray, u: np.ndarray, lateral_accel: np.ndarray, yaw_accel: np.ndarray
+        x: np.ndarray,
+        delta: np.ndarray,
+        lateral_accel: np.ndarray,
+        yaw_accel: np.ndarray,
+        a: float,
+        b: float,
     ) -> tuple[float, float, float, float]:
         """(C_f/m, C_r/m, C_f/(m i_s), m/I_z): both equations together, by separable least
         squares (for a given m/I_z both are linear in the rest; the best m/I_z by a bounded
@@ -145,9 +225,11 @@ class SingleTrack(Learner):
         nearly −vy/vx): on ``data=default`` it gave C_r = 5·C_f and a model that lost the lane
         change; the yaw equation weighs them with +a and −b and separates them.
         """
-        alpha_f, alpha_r, delta = self._slips(x, u)
+        vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
+        w = np.maximum(vx, 1e-9)
+        alpha_f, alpha_r = -(vy + a * r) / w, -(vy - b * r) / w
         lateral = np.column_stack([alpha_f, alpha_r, delta]) / lateral_accel.std()
-        yaw = np.column_stack([self.a * alpha_f, -self.b * alpha_r, self.a * delta])
+        yaw = np.column_stack([a * alpha_f, -b * alpha_r, a * delta])
         yaw /= yaw_accel.std()
         target = np.concatenate([lateral_accel / lateral_accel.std(), yaw_accel / yaw_accel.std()])
 
@@ -166,94 +248,135 @@ class SingleTrack(Learner):
         (front, rear, steer), _ = fit(float(best.x))
         return float(front), float(rear), float(steer), float(np.exp(best.x))
 
+    def _stable_substeps(self, fastest_mps: float) -> int:
+        """Euler sub-steps per period that keep every lateral eigenvalue λ stable with a factor
+        2 margin (h |λ|² <= |Re λ|), from min_speed_mps to ``fastest_mps``."""
+        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6]
+        del t1, t4
+        needed = 1
+        for vx in np.linspace(self.min_speed, max(fastest_mps, self.min_speed), 50):
+            w = max(vx, self.min_speed)
+            jacobian = np.array([[t2 / w, t3 / w - vx], [t5 / w, t6 / w]])
+            for eigenvalue in np.linalg.eigvals(jacobian):
+                if eigenvalue.real >= 0:
+                    continue  # not damped: no step size makes Euler follow it more stably
+                largest = abs(eigenvalue.real) / abs(eigenvalue) ** 2
+                needed = max(needed, math.ceil(self.dt_ / largest - 1e-9))
+        return min(needed, MAX_SUBSTEPS)
+
+    def _steer_to_rad(self) -> float:
+        """The first input's unit: degrees where its name ends in ``_deg``, else radians."""
+        normalizer = getattr(self, "normalizer_", None)
+        name = normalizer.input_names[0] if normalizer is not None else "steer_wheel_deg"
+        return math.pi / 180.0 if name.endswith("_deg") else 1.0
+
     @property
     def parameters(self) -> dict[str, float]:
         """The identified physics, in SI units: C_f, C_r (N/rad per axle), I_z (kg m²), the
-        steering ratio, and the longitudinal coefficients (per unit mass)."""
-        values = dict(zip(NAMES, self.coefficients_.tolist(), strict=True))
-        front, rear, steer = (values[k] for k in LATERAL)
+        steering ratio (per unit of the steering input), a and b (given or recovered), and the
+        longitudinal coefficients (per unit mass)."""
+        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6].tolist()
+        mass_per_inertia = t5 / t3 if t3 else float("nan")
+        total, moment = -t2, -t3
+        if self.a is not None and self.b is not None:
+            a, b = self.a, self.b
+        else:  # a = θ_4 / (k θ_1); b from C_f + C_r, a C_f − b C_r and a² C_f + b² C_r
+            a = t4 / (mass_per_inertia * t1)
+            b = a + (-t6 / mass_per_inertia - a * a * total) / (a * total - moment)
+        rear = (a * total - moment) / (a + b)
+        front = total - rear
+        names = (
+            coefficient_names(self.normalizer_.input_names)
+            if hasattr(self, "normalizer_")
+            else coefficient_names(("steer_wheel_deg", "pedal"))
+        )
         return {
             "cornering_stiffness_front_n_per_rad": front * self.mass_kg,
             "cornering_stiffness_rear_n_per_rad": rear * self.mass_kg,
-            "yaw_inertia_kg_m2": self.mass_kg / values["mass_per_inertia"],
-            "steering_ratio": front / steer if steer else float("inf"),
-            **{k: values[k] for k in LONGITUDINAL},
+            "yaw_inertia_kg_m2": self.mass_kg / mass_per_inertia,
+            "steering_ratio": front / t1 if t1 else float("inf"),
+            "cg_to_front_m": a,
+            "cg_to_rear_m": b,
+            **dict(zip(names[6:], self.coefficients_[6:].tolist(), strict=True)),
         }
 
     # -- the model --------------------------------------------------------------------------
 
-    def _slips(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(α_f without steering, α_r, steering-wheel angle in rad) at states x, inputs u."""
-        vx, vy, r = x[..., 0], x[..., 1], x[..., 2]
-        w = np.maximum(vx, self.min_speed)
-        return -(vy + self.a * r) / w, -(vy - self.b * r) / w, np.deg2rad(u[..., 0])
-
     def _longitudinal_regressors(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         vx = x[..., 0]
         w = np.maximum(vx, self.min_speed)
-        throttle, brake = np.maximum(u[..., 1], 0.0), np.minimum(u[..., 1], 0.0)
-        return np.stack([np.ones_like(vx), vx * vx, throttle, throttle / w, brake], axis=-1)
+        on, off = np.maximum(u[..., 1:], 0.0), np.minimum(u[..., 1:], 0.0)
+        per_input = np.stack([on, on / w[..., None], off], axis=-1)  # (..., m - 1, 3)
+        per_input = per_input.reshape(*per_input.shape[:-2], -1)
+        return np.concatenate(
+            [np.ones_like(vx)[..., None], (vx * vx)[..., None], per_input], axis=-1
+        )
 
     def derivative(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """ẋ (..., 3) at physical states x (..., 3) and input features u (..., 2) (steering
-        wheel in degrees, signed pedal scale)."""
-        front, rear, steer, mass_per_inertia = self.coefficients_[:4]
-        rolling, drag, throttle_gain, power, brake_gain = self.coefficients_[4:]
+        """ẋ (..., 3) at physical states x (..., 3) and input features u (..., m) (steering,
+        then the others; for the sedan the signed pedal scale)."""
+        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6]
         vx, vy, r = x[..., 0], x[..., 1], x[..., 2]
-        alpha_f, alpha_r, delta = self._slips(x, u)
-        force_f = front * alpha_f + steer * delta
-        force_r = rear * alpha_r
-        throttle = np.maximum(u[..., 1], 0.0)
         w = np.maximum(vx, self.min_speed)
-        push = (
-            throttle_gain * throttle + power * throttle / w + brake_gain * np.minimum(u[..., 1], 0)
-        )
-        dvx = vy * r + rolling + drag * vx * vx + push  # as _longitudinal_regressors
-        dvy = force_f + force_r - vx * r
-        dr = mass_per_inertia * (self.a * force_f - self.b * force_r)
+        delta = u[..., 0] * self._steer_to_rad()
+        push = self._longitudinal_regressors(x, u) @ self.coefficients_[6:]
+        dvx = vy * r + push
+        dvy = t1 * delta + (t2 * vy + t3 * r) / w - vx * r
+        dr = t4 * delta + (t5 * vy + t6 * r) / w
         return np.stack([dvx, dvy, dr], axis=-1)
 
     def _jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(∂ẋ/∂x (K, 3, 3), ∂ẋ/∂u (K, 3, 2)) at K points, physical units (u: features)."""
-        front, rear, steer, mass_per_inertia = self.coefficients_[:4]
-        _, drag, throttle, power, brake = self.coefficients_[4:]
+        """(∂ẋ/∂x (K, 3, 3), ∂ẋ/∂u (K, 3, m)) at K points, physical units (u: features)."""
+        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6]
+        drag = self.coefficients_[7]
+        gains = self.coefficients_[8:].reshape(-1, 3)  # (m - 1, 3): g, p, b
         vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
         fast = (vx > self.min_speed).astype(float)  # ∂w/∂vx
         w = np.maximum(vx, self.min_speed)
-        zero = np.zeros_like(vx)
-        # ∂α/∂(vx, vy, r)
-        d_alpha_f = np.stack([(vy + self.a * r) / w**2 * fast, -1 / w, -self.a / w], axis=-1)
-        d_alpha_r = np.stack([(vy - self.b * r) / w**2 * fast, -1 / w, self.b / w], axis=-1)
-        d_force_f, d_force_r = front * d_alpha_f, rear * d_alpha_r
-        pedal = u[:, 1]
-        pedal_on = np.maximum(pedal, 0.0)
-        d_vx = np.stack([2 * drag * vx - power * pedal_on / w**2 * fast, r, vy], axis=-1)
-        d_vy = d_force_f + d_force_r - np.stack([r, zero, vx], axis=-1)
-        d_r = mass_per_inertia * (self.a * d_force_f - self.b * d_force_r)
+        others = u[:, 1:]
+        on = np.maximum(others, 0.0)
+        d_vx = np.stack([2 * drag * vx - (on @ gains[:, 1]) / w**2 * fast, r, vy], axis=-1)
+        d_vy = np.stack([-(t2 * vy + t3 * r) / w**2 * fast - r, t2 / w, t3 / w - vx], axis=-1)
+        d_r = np.stack([-(t5 * vy + t6 * r) / w**2 * fast, t5 / w, t6 / w], axis=-1)
         jx = np.stack([d_vx, d_vy, d_r], axis=1)
-        # Pedal: the throttle's slope above 0, the brake's below, their mean at exactly 0.
-        on_throttle = throttle + power / w
-        d_pedal = np.where(
-            pedal > 0, on_throttle, np.where(pedal < 0, brake, (on_throttle + brake) / 2)
+        # Each other input: its positive part's slope above 0, the negative's below, their
+        # mean at exactly 0.
+        on_slope = gains[:, 0] + gains[:, 1] / w[:, None]
+        slope = np.where(
+            others > 0, on_slope, np.where(others < 0, gains[:, 2], (on_slope + gains[:, 2]) / 2)
         )
-        d_steer = np.deg2rad(steer)
-        ju = np.zeros((len(vx), 3, 2))
-        ju[:, 0, 1] = d_pedal
-        ju[:, 1, 0] = d_steer
-        ju[:, 2, 0] = mass_per_inertia * self.a * d_steer
+        steer = self._steer_to_rad()
+        ju = np.zeros((len(vx), 3, u.shape[1]))
+        ju[:, 0, 1:] = slope
+        ju[:, 1, 0] = t1 * steer
+        ju[:, 2, 0] = t4 * steer
         return jx, ju
 
+    def _euler(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One period of ``substeps_`` Euler steps, physical units (no stop at vx = 0)."""
+        h = self.dt_ / self.substeps_
+        for _ in range(self.substeps_):
+            x = x + h * self.derivative(x, u)
+        return x
+
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
-        x0, inputs = check_rollout_args(x0, inputs, 3, 2)
-        u = _features(inputs)
+        m = len(self.normalizer_.input_min) if hasattr(self, "normalizer_") else 2
+        x0, inputs = check_rollout_args(x0, inputs, 3, m)
+        u = self._features(inputs)
         x = np.empty((*inputs.shape[:-1][:-1], inputs.shape[-2] + 1, 3))
         x[..., 0, :] = x0
         with np.errstate(over="ignore", invalid="ignore"):
             for k in range(inputs.shape[-2]):
-                state = x[..., k, :] + self.dt_ * self.derivative(x[..., k, :], u[..., k, :])
+                state = self._euler(x[..., k, :], u[..., k, :])
                 state[..., 0] = np.maximum(state[..., 0], 0.0)  # brakes stop the car, no more
                 x[..., k + 1, :] = state
         return x
+
+    def _features(self, inputs: np.ndarray) -> np.ndarray:
+        """The inputs as the model is linear in them (before a fit: the sedan's)."""
+        if hasattr(self, "normalizer_"):
+            return self.normalizer_.input_features(inputs)
+        return np.stack([c.feature(inputs[..., j]) for j, c in enumerate(SEDAN_INPUTS)], -1)
 
     # -- the LinearizableModel contract (normalized units) ----------------------------------
 
@@ -261,78 +384,91 @@ class SingleTrack(Learner):
         return np.asarray(self.normalizer_.states(x), dtype=float)
 
     def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """One Euler step in normalized units (no stop at vx = 0: the smooth model the MPC sees)."""
+        """One period in normalized units (no stop at vx = 0: the smooth model the MPC sees)."""
         state_span, state_min, input_span, input_min = self._coordinates()
         x = z * state_span + state_min
         u = v * input_span + input_min
-        if x.ndim == 1:  # the MPC's rollout, one point at a time: floats, not 0-d arrays
-            return (
-                z
-                + self.dt_ * np.array(self._derivative_point(*x.tolist(), *u.tolist())) / state_span
-            )
-        return z + self.dt_ * self.derivative(x, u) / state_span
+        if x.ndim == 1 and self._floats:  # the MPC's rollout, one point: floats, not 0-d arrays
+            point = x.tolist()
+            h = self.dt_ / self.substeps_
+            for _ in range(self.substeps_):
+                rates = self._derivative_point(*point, *u.tolist())
+                point = [p + h * d for p, d in zip(point, rates, strict=True)]
+            return (np.array(point) - state_min) / state_span
+        return (self._euler(x, u) - state_min) / state_span
 
     def _derivative_point(
-        self, vx: float, vy: float, r: float, steer_deg: float, pedal: float
+        self, vx: float, vy: float, r: float, steer_in: float, pedal: float
     ) -> tuple[float, float, float]:
-        """:meth:`derivative` at one point in plain floats (10x faster than numpy on 3-vectors)."""
-        front, rear, steer, mass_per_inertia, rolling, drag, gain, power, brake = self._floats
+        """:meth:`derivative` at one point of the sedan's two inputs, in plain floats (10x
+        faster than numpy on 3-vectors)."""
+        t1, t2, t3, t4, t5, t6, rolling, drag, gain, power, brake = self._floats
         w = max(vx, self.min_speed)
-        force_f = -front * (vy + self.a * r) / w + steer * steer_deg * (math.pi / 180.0)
-        force_r = -rear * (vy - self.b * r) / w
+        delta = steer_in * self._steer_float
         throttle = max(pedal, 0.0)
         push = gain * throttle + power * throttle / w + brake * min(pedal, 0.0)
         dvx = vy * r + rolling + drag * vx * vx + push
-        dvy = force_f + force_r - vx * r
-        return dvx, dvy, mass_per_inertia * (self.a * force_f - self.b * force_r)
+        dvy = t1 * delta + (t2 * vy + t3 * r) / w - vx * r
+        return dvx, dvy, t4 * delta + (t5 * vy + t6 * r) / w
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The derivative of :meth:`step` (every sub-step's Jacobian, chained) at K points."""
         state_span, state_min, input_span, input_min = self._coordinates()
-        jx, ju = self._jacobians(z * state_span + state_min, v * input_span + input_min)
-        A = np.eye(3) + self.dt_ * jx * state_span[None, :] / state_span[:, None]
-        B = self.dt_ * ju * input_span[None, :] / state_span[:, None]
+        z, v = np.atleast_2d(z), np.atleast_2d(v)
+        x, u = z * state_span + state_min, v * input_span + input_min
+        h = self.dt_ / self.substeps_
+        jac_x = np.broadcast_to(np.eye(3), (len(x), 3, 3)).copy()
+        jac_u = np.zeros((len(x), 3, u.shape[1]))
+        for _ in range(self.substeps_):
+            jx, ju = self._jacobians(x, u)
+            step = np.eye(3) + h * jx
+            jac_x = step @ jac_x
+            jac_u = step @ jac_u + h * ju
+            x = x + h * self.derivative(x, u)
+        A = jac_x * state_span[None, :] / state_span[:, None]
+        B = jac_u * input_span[None, :] / state_span[:, None]
         d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
         return A, B, d
 
     def _coordinates(self) -> _Maps:
         """(state span, state min, input-feature span, input-feature min): x = span z + min and
         features = span v + min, the normalizer's affine maps (cached per normalizer and fit,
-        with the coefficients as floats)."""
+        with the coefficients as floats where the inputs are the sedan's two)."""
         if self._maps is None or self._maps[0] is not self.normalizer_:
             normalizer = self.normalizer_
             state_span, input_span = _spans(normalizer)
             state_min = normalizer.states_inverse(np.zeros(3))
             input_min = np.asarray(normalizer.input_min, dtype=float)
             self._maps = (normalizer, (state_span, state_min, input_span, input_min))
-            self._floats = tuple(self.coefficients_.tolist())
+            two = len(input_min) == 2
+            self._floats = tuple(self.coefficients_.tolist()) if two else ()
+            self._steer_float = self._steer_to_rad()
         return self._maps[1]
 
     # -- model file ---------------------------------------------------------------------------
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
-        return {"coefficients": self.coefficients_, "dt": np.array([self.dt_])}
+        return {
+            "coefficients": self.coefficients_,
+            "dt": np.array([self.dt_]),
+            "substeps": np.array([float(self.substeps_)]),  # float: a NaN in it is caught
+        }
 
     def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
-        return {"coefficients": (len(NAMES),), "dt": (1,)}
+        return {"coefficients": (6 + 2 + 3 * (m - 1),), "dt": (1,), "substeps": (1,)}
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self.coefficients_ = state["coefficients"].numpy().astype(np.float64)
         self._maps = None
         self.dt_ = float(state["dt"].numpy()[0])
-
-
-def _features(u: np.ndarray) -> np.ndarray:
-    """(steering-wheel degrees, signed pedal scale): the inputs the model is linear in."""
-    u = np.asarray(u, dtype=float)
-    return np.stack([u[..., 0], pedal_scale(u[..., 1])], axis=-1)
+        self.substeps_ = max(1, round(float(state["substeps"].numpy()[0])))
 
 
 def _spans(normalizer: MinMaxNormalizer) -> tuple[np.ndarray, np.ndarray]:
     """Physical units per normalized unit: of the states, and of the input features."""
     state_span = normalizer.states_inverse(np.ones(3)) - normalizer.states_inverse(np.zeros(3))
-    # inputs() is affine in the features: feature 1 (1° of steering, full throttle) minus 0.
-    per_feature = normalizer.inputs(np.array([1.0, 0.2])) - normalizer.inputs(np.zeros(2))
-    return state_span, 1.0 / per_feature
+    low, high = np.asarray(normalizer.input_min), np.asarray(normalizer.input_max)
+    return state_span, np.where(high - low > 1e-12, high - low, 1.0)
 
 
 def _lstsq(regressors: np.ndarray, target: np.ndarray) -> np.ndarray:
