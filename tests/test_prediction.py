@@ -80,7 +80,8 @@ def test_a_perfect_model_has_zero_rmse_in_every_metric() -> None:
     exact = EDMD(ThinPlateRBF(0), include_constant=False, ridge=0.0).fit(episodes, [], NORMALIZER)
     results = evaluate({"exact": exact}, [test], window_steps=41, window_seconds=5.0)
     metrics = results["exact"]["test"]
-    assert set(metrics) == {"rmse", "rmse_window_41", "rmse_window_5s"}
+    assert set(metrics) == {"diverged", "rmse", "rmse_window_41", "rmse_window_5s"}
+    assert metrics.pop("diverged") is False
     for values in metrics.values():
         assert set(values) == {"vx", "vy", "yaw_rate"}
         assert max(values.values()) < 1e-9
@@ -103,6 +104,7 @@ def test_a_constant_offset_is_the_rmse_of_every_metric() -> None:
     exact.fit([linear_episode("train", 600, 0)], [], NORMALIZER)
     test = linear_episode("test", 500, 1)
     metrics = evaluate({"shifted": Shifted(exact)}, [test], window_steps=41, window_seconds=1.0)
+    assert metrics["shifted"]["test"].pop("diverged") is False
     for values in metrics["shifted"]["test"].values():
         np.testing.assert_allclose(list(values.values()), np.abs(offset), rtol=1e-6)
 
@@ -166,6 +168,7 @@ def test_a_diverging_model_reports_inf_not_nan_and_says_which_diverged_where(
 
     metrics = evaluate({"bad": Diverges()}, [linear_episode("e", 50, 5)])["bad"]["e"]
     assert metrics["rmse"] == {"vx": np.inf, "vy": np.inf, "yaw_rate": np.inf}
+    assert metrics["diverged"] is True
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert warning.startswith(
         "prediction: bad's open-loop prediction of e is not finite from t = 0.05 s on (45 of 50"
@@ -210,3 +213,30 @@ def test_robustness_of_a_trained_dnn_spreads_and_refuses_models_without_the_laye
         assert low < summary["rmse_mean"][state] < summary["rmse_max"][state]
     with pytest.raises(ValueError, match="was not trained with a random layer"):
         robustness({"edmd": EDMD(ThinPlateRBF(5)).fit(episodes[:2], [], normalizer)}, episodes[2:])
+
+
+def test_a_rollout_far_outside_the_training_range_is_flagged_diverged_though_finite() -> None:
+    """Finite but 10 training ranges away is a model that ran off, not one that predicts badly;
+    a prediction just outside the range (an honest extrapolation) is not flagged."""
+    episode = linear_episode("e", 50, 5)
+
+    class RunsAway(Hold):
+        def __init__(self, factor: float) -> None:
+            super().__init__()
+            self.factor = factor
+
+        def fit(self, train, validation, normalizer):
+            self.normalizer_ = normalizer
+            return self
+
+        def predict(self, x0, inputs):
+            out = super().predict(x0, inputs).astype(float)
+            span = self.normalizer_.state_max - self.normalizer_.state_min
+            out[..., -1, :] = self.normalizer_.state_max + self.factor * span
+            return out
+
+    flags = {}
+    for factor in (0.5, 10.5):
+        model = RunsAway(factor).fit([episode], [], MinMaxNormalizer.fit([episode]))
+        flags[factor] = evaluate({"m": model}, [episode])["m"]["e"]["diverged"]
+    assert flags == {0.5: False, 10.5: True}

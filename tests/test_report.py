@@ -15,7 +15,12 @@ import pytest
 from harness.core.files import try_lock
 from harness.report import Run, main, read_runs, report
 from harness.report.figures import loss_figure
-from harness.report.tables import course_speed_table, course_table, generalization_table
+from harness.report.tables import (
+    course_speed_table,
+    course_table,
+    generalization_table,
+    prediction_table,
+)
 from tests.test_pipeline import TINY
 
 
@@ -65,8 +70,9 @@ def test_report_has_a_row_per_learner_and_test_episode_over_seeds(tiny_sweep: Pa
     assert prediction[0] == "learner,plant,variant,test episode,jobs,vx,vy,yaw_rate"
     rows = [line.split(",") for line in prediction[1:]]
     plain = {(r[0], r[4]) for r in rows if r[2] == "—"}
-    assert plain == {("edmd", "2"), ("elm_edmd", "2")}  # two seeds each
-    assert sum(r[2] == "—" for r in rows) == 2  # one test episode per learner
+    # two seeds each, and persistence (the state held) on the same drive: one row, no fit
+    assert plain == {("edmd", "2"), ("elm_edmd", "2"), ("persistence", "—")}
+    assert sum(r[2] == "—" for r in rows) == 3  # one test episode per learner
     assert all("±" in r[5] for r in rows if r[4] == "2")  # mean ± std over the two seeds
     assert any(r[2] == "learner.ridge=0.0" for r in rows)  # a different variant is its own row
     tracking = (tiny_sweep / "report" / "tracking.csv").read_text()
@@ -223,6 +229,28 @@ def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others()
     assert rows["sedan"][:5] == ["edmd", "sedan", "sedan", "—", "2"]
     assert rows["sedan"][5].startswith("1.5 ±") and rows["sedan_wet"][5].startswith("3.5 ±")
     assert rows["sedan_wet"][-1].startswith("7 ±")  # lane change, mean of 6 and 8
+
+
+def test_a_diverged_rollout_is_named_in_the_prediction_table_not_averaged() -> None:
+    def job(seed: int, vx: float, diverged: bool) -> Run:
+        rmse = {"vx": vx, "vy": 0.1, "yaw_rate": 0.01}
+        held = {"rmse": {"vx": 5.0, "vy": 0.2, "yaw_rate": 0.08}}
+        prediction = {"run_1": {"rmse": rmse, "diverged": diverged}, "persistence": {"run_1": held}}
+        return Run(
+            Path(f"input_edmd-{seed}"),
+            choices={"learner": "input_edmd", "plant": "sedan"},
+            overrides={"learner": "input_edmd", "seed": str(seed)},
+            seed=seed,
+            metrics={"prediction": prediction},
+        )
+
+    table = prediction_table([job(0, 1.0, False), job(1, 3.0, False), job(2, 1e9, True)])
+    learner, persistence = table.rows
+    assert learner[:5] == ["input_edmd", "sedan", "—", "run_1", "2"]
+    assert learner[5] == "2 ± 1.4 (1 of 3 diverged)"  # 1e9 is in no mean
+    assert persistence[0] == "persistence" and persistence[5] == "5"
+    everything_gone = prediction_table([job(2, 1e9, True)]).rows[0]
+    assert everything_gone[5:] == ["diverged (1 of 1)"] * 3
 
 
 def write_job(path: Path, choices: dict, overrides: list[str], seed: int, metrics: dict) -> Path:

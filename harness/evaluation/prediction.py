@@ -9,7 +9,9 @@ state under the recorded inputs, three ways, and returns RMSEs per state in SI u
 - ``rmse_window_<s>s``: the same with windows of each of ``window_seconds``.
 
 Row 0 of every rollout is the measured state itself and is left out of the RMSE. A model that
-diverges gives inf (written as null in ``metrics.json``).
+diverges gives inf (written as null in ``metrics.json``). A whole-episode rollout that is not
+finite, or leaves the training data's range by more than ``DIVERGED_SPANS`` times its span in
+any state, is flagged ``diverged``: the report shows it as such, never inside a mean.
 
 :func:`robustness` repeats predictions of learners trained with a random layer, drawing the
 layer anew each time (the paper's second experiment), and reports the RMSE's mean and spread.
@@ -46,6 +48,9 @@ STATE_NAMES = ("vx", "vy", "yaw_rate")
 _UNITS = ("m/s", "m/s", "rad/s")
 log = logging.getLogger(__name__)
 _REPEAT_CHUNK = 25  # repeated predictions per batched rollout (bounds memory on long episodes)
+# A prediction this many training ranges outside the training data has left what the model knows:
+# its RMSE measures how fast it ran away, not how well it predicts.
+DIVERGED_SPANS = 10.0
 
 
 def rmse(
@@ -104,7 +109,7 @@ def evaluate(
     recorder: Recorder | None = None,
     output_dir: Path | None = None,
     prefix: str = "",
-) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+) -> dict[str, dict[str, dict[str, Any]]]:
     """RMSEs of every learner on every episode: ``{learner: {episode: {metric: {state: v}}}}``.
 
     Metrics: ``rmse``, ``rmse_window_<window_steps>``, ``rmse_window_<s>s`` for each ``s`` of
@@ -115,7 +120,7 @@ def evaluate(
     Use :func:`by_episode` for ``{episode: {learner: ...}}``.
     """
     seconds = [window_seconds] if isinstance(window_seconds, int | float) else window_seconds
-    results: dict[str, dict[str, dict[str, dict[str, float]]]] = {name: {} for name in learners}
+    results: dict[str, dict[str, dict[str, Any]]] = {name: {} for name in learners}
     for episode in episodes:
         dt = float(np.median(np.diff(episode.time_s)))
         predictions = {}
@@ -124,6 +129,7 @@ def evaluate(
             _warn_diverged(name, episode, pred)
             predictions[name] = pred
             results[name][episode.name] = {
+                "diverged": diverged(learner, pred),
                 "rmse": rmse(pred, episode.states),
                 f"rmse_window_{window_steps}": rmse(
                     *_pair(windowed(learner, episode, window_steps), episode)
@@ -157,6 +163,18 @@ def evaluate(
                 **{f"predicted_{name}": p for name, p in predictions.items()},
             )
     return results
+
+
+def diverged(learner: Learner, predicted: np.ndarray) -> bool:
+    """Whether a rollout is not finite or leaves the training data's range by more than
+    ``DIVERGED_SPANS`` spans in any state (in the learner's min-max normalized units)."""
+    if not np.all(np.isfinite(predicted)):
+        return True
+    normalizer = getattr(learner, "normalizer_", None)
+    if normalizer is None:  # a model that knows no training range: finiteness is all there is
+        return False
+    scaled = normalizer.states(predicted)
+    return bool(np.any((scaled < -DIVERGED_SPANS) | (scaled > 1.0 + DIVERGED_SPANS)))
 
 
 def _warn_diverged(name: str, episode: Episode, predicted: np.ndarray) -> None:

@@ -86,12 +86,19 @@ def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
             {e for j in members for e in (_get(j.metrics, "prediction") or {})} - _NOT_EPISODES
         )
         for episode in episodes:
-            values = [_get(j.metrics, "prediction", episode, metric) for j in members]
-            present = [v for v in values if v]
-            table.rows.append(
-                [learner, plant, varied or "—", episode, str(len(present))]
-                + [_mean_std(v.get(s) for v in present) for s in STATES]
-            )
+            runs = [_get(j.metrics, "prediction", episode) or {} for j in members]
+            # A whole-drive rollout that ran away is named, not averaged (nor dropped silently).
+            gone = sum(1 for r in runs if metric == "rmse" and r.get("diverged"))
+            present = [
+                r[metric]
+                for r in runs
+                if r.get(metric) and not (metric == "rmse" and r.get("diverged"))
+            ]
+            note = f" ({gone} of {len(runs)} diverged)" if gone else ""
+            cells = [_mean_std(v.get(s) for v in present) + note for s in STATES]
+            if gone and not present:
+                cells = [f"diverged ({gone} of {len(runs)})"] * len(STATES)
+            table.rows.append([learner, plant, varied or "—", episode, str(len(present)), *cells])
     # Persistence (the state held) on the same drives: the bar beside every learner's rows. It
     # has no fit, so every job of a plant and data reports the same numbers: one row each.
     held: dict[tuple[str, str], Mapping[str, Any]] = {}
