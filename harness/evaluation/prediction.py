@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.core.episode import Episode
+from harness.core.episode import SEDAN_INPUTS, Episode
 from harness.output import save_arrays, save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
@@ -302,10 +302,17 @@ def _figure(episode: Episode) -> tuple[Figure, np.ndarray]:
         ax.set_ylim(episode.states[:, i].min() - pad, episode.states[:, i].max() + pad)
     ax_u = axes[3]
     ax_u.plot(t, episode.inputs[:, 0], color="C7", lw=1.0)
-    ax_u.set_ylabel("steer_wheel [deg]", color="C7")
-    ax_p = ax_u.twinx()
-    ax_p.plot(t, episode.inputs[:, 1], color="C8", lw=1.0)
-    ax_p.set_ylabel("pedal [throttle / -MPa]", color="C8")
+    sedan = episode.channels == SEDAN_INPUTS
+    ax_u.set_ylabel("steer_wheel [deg]" if sedan else episode.input_names[0], color="C7")
+    if episode.inputs.shape[1] > 1:  # the others on one axis of their own
+        ax_p = ax_u.twinx()
+        for j, name in enumerate(episode.input_names[1:], start=1):
+            ax_p.plot(t, episode.inputs[:, j], color=f"C{7 + j}", lw=1.0, label=name)
+        if sedan:
+            ax_p.set_ylabel("pedal [throttle / -MPa]", color="C8")
+        else:
+            ax_p.set_ylabel(", ".join(episode.input_names[1:]))
+            ax_p.legend(fontsize=7, loc="upper right")
     ax_u.set_xlabel("time [s]")
     ax_u.grid(True, alpha=0.3)
     return fig, axes
