@@ -271,6 +271,11 @@ class SingleTrack(Learner):
         return math.pi / 180.0 if name.endswith("_deg") else 1.0
 
     @property
+    def fit_summary(self) -> dict[str, Any]:
+        """What the fit identified (``training.fit``): the physics, and the Euler sub-steps."""
+        return {"parameters": self.parameters, "substeps": self.substeps_}
+
+    @property
     def parameters(self) -> dict[str, float]:
         """The identified physics, in SI units: C_f, C_r (N/rad per axle), I_z (kg m²), the
         steering ratio (per unit of the steering input), a and b (given or recovered), and the
