@@ -281,7 +281,7 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["data"]["inputs"] == ["front_wheel_angle_rad", "throttle", "brake_mpa"]
-    assert metrics["data"]["period_s"] == 0.05
+    assert metrics["data"]["period_s"] == 0.05 and metrics["data"]["source"] == "logs"
     assert metrics["data"]["split"]["test"] == [
         "data_unit_1",
         "data_unit_24",

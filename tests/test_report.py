@@ -251,6 +251,11 @@ def test_a_diverged_rollout_is_named_in_the_prediction_table_not_averaged() -> N
     assert persistence[0] == "persistence" and persistence[5] == "5"
     everything_gone = prediction_table([job(2, 1e9, True)]).rows[0]
     assert everything_gone[5:] == ["diverged (1 of 1)"] * 3
+    # On a user's logs the configured plant never ran: the row names the logs.
+    logs = job(0, 1.0, False)
+    logs.choices["data"] = "ddk_carsim"
+    logs.metrics["data"] = {"source": "logs"}
+    assert prediction_table([logs]).rows[0][1] == "logs: ddk_carsim"
 
 
 def write_job(path: Path, choices: dict, overrides: list[str], seed: int, metrics: dict) -> Path:

@@ -55,6 +55,7 @@ def prepare(
         "spun_episodes": sorted(n for n, v in dataset.manifest["episodes"].items() if v["spun"]),
         # Episodes this job drove; 0: stored already (or by another job of the sweep).
         "episodes_collected": collected,
+        "source": "logs" if dataset.from_logs else "plant",
         "period_s": dataset.period_s,
         "inputs": list(dataset.normalizer.input_names),
         "coverage": coverage.summary(dataset.episodes(), friction),

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.core.episode import Episode
+from harness.core.contracts import INPUT_NAMES as SEDAN_INPUTS_NAMES
+from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel
 from harness.evaluation.prediction import plot_prediction
 from harness.evaluation.tracking import load_run, plot_tracking
 from harness.output import load_arrays, save_figure
@@ -82,7 +83,12 @@ def prediction_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Pat
                 episodes.setdefault(
                     name,
                     Episode(
-                        name, arrays["time_s"], arrays["states"], arrays["inputs"], arrays["poses"]
+                        name,
+                        arrays["time_s"],
+                        arrays["states"],
+                        arrays["inputs"],
+                        arrays["poses"],
+                        _channels(job),
                     ),
                 )
                 predicted = [k for k in arrays if k.startswith("predicted_")]
@@ -92,6 +98,14 @@ def prediction_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Pat
             path = out / subdir / f"prediction_{name}{suffix}.png"
             written.append(plot_prediction(episodes[name], predictions, path))
     return written
+
+
+def _channels(job: Run) -> tuple[InputChannel, ...]:
+    """The inputs a job's data had (``data.inputs``; the sedan's where a job does not say)."""
+    names = (job.metrics or {}).get("data", {}).get("inputs")
+    if not names or tuple(names) == SEDAN_INPUTS_NAMES:
+        return SEDAN_INPUTS
+    return tuple(InputChannel(str(n)) for n in names)
 
 
 def tracking_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Path]:

@@ -71,6 +71,11 @@ class Run:
 
     @property
     def plant(self) -> str:
+        """The plant the job drove; for a job on a user's logs (``data.source: logs``) the
+        logs' config: the configured plant never ran."""
+        data = (self.metrics or {}).get("data")
+        if isinstance(data, dict) and data.get("source") == "logs":
+            return f"logs: {self._choice('data')}"
         return self._choice("plant")
 
     @property

@@ -102,11 +102,19 @@ def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
     # Persistence (the state held) on the same drives: the bar beside every learner's rows. It
     # has no fit, so every job of a plant and data reports the same numbers: one row each.
     held: dict[tuple[str, str], Mapping[str, Any]] = {}
+    as_learner = {
+        (j.plant, e)
+        for j in jobs
+        if j.learner == "persistence"
+        for e in (_get(j.metrics, "prediction") or {})
+    }  # learner=persistence has its own rows
     for job in jobs:
         for episode, metrics in (_get(job.metrics, "prediction", "persistence") or {}).items():
             if _get(metrics, metric) is not None:
                 held.setdefault((job.plant, episode), metrics[metric])
     for (plant, episode), values in sorted(held.items()):
+        if (plant, episode) in as_learner:
+            continue
         table.rows.append(
             ["persistence", plant, "—", episode, "—"] + [_mean_std([values.get(s)]) for s in STATES]
         )
