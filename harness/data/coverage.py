@@ -78,6 +78,8 @@ def summary(
         "vx_min_mps": float(vx.min()),
         "start_speed_max_mps": float(max(e.states[0, 0] for e in episodes)),
         "vx_p50_mps": float(np.median(vx)),
+        "fraction_below_5mps": float(np.mean(vx < 5.0)),
+        "fraction_above_25mps": float(np.mean(vx > 25.0)),
         "vy_abs_max_mps": float(np.abs(states[:, 1]).max()),
         "yaw_rate_abs_max_radps": float(np.abs(states[:, 2]).max()),
         "lateral_accel_p99_mps2": float(np.percentile(a_y, 99)),
@@ -92,20 +94,7 @@ def summary(
     limit = road_friction * G
     sawtooth = sum(int(sawtooth_frames(e.inputs[:, 0], dt).sum()) for e in episodes)
     reversals = sum(len(steering_reversals(e.inputs[:, 0], dt)) for e in episodes)
-    return {
-        "episodes": len(episodes),
-        "frames": len(states),
-        "hours": float(len(states) * dt / 3600),
-        "vx_max_mps": float(vx.max()),
-        "vx_min_mps": float(vx.min()),
-        "start_speed_max_mps": float(max(e.states[0, 0] for e in episodes)),
-        "vx_p50_mps": float(np.median(vx)),
-        "fraction_below_5mps": float(np.mean(vx < 5.0)),
-        "fraction_above_25mps": float(np.mean(vx > 25.0)),
-        "vy_abs_max_mps": float(np.abs(states[:, 1]).max()),
-        "yaw_rate_abs_max_radps": float(np.abs(states[:, 2]).max()),
-        "lateral_accel_p99_mps2": float(np.percentile(a_y, 99)),
-        "lateral_accel_max_mps2": float(a_y.max()),
+    return common | {
         "fraction_lateral_above_half_mu_g": float(np.mean(a_y > 0.5 * limit)),
         "fraction_lateral_above_0.8_mu_g": float(np.mean(a_y > 0.8 * limit)),
         "steer_abs_p99_deg": float(np.percentile(np.abs(inputs[:, 0]), 99)),

@@ -151,14 +151,7 @@ class Pipeline:
         )
         sections["spectrum"] = self._spectrum(learner, plant.dt, recorder, output_dir)
         if learner.redraws_random_layer:
-            repeated = robustness(
-                {self.learner_name: learner},
-                dataset.test,
-                self.robustness_repeats,
-                recorder=recorder,
-                output_dir=output_dir,
-            )
-            sections["robustness"] = _one_learner(repeated, self.learner_name)
+            sections["robustness"] = self._robustness(learner, dataset, recorder, output_dir)
         models = self._controller_models(learner, dataset)
         tracking = self._track(models, learner, plant, dataset.test, recorder, output_dir)
         if tracking is not None:
@@ -190,14 +183,7 @@ class Pipeline:
         sections["prediction"]["step_response"] = {"skipped": why}
         sections["spectrum"] = self._spectrum(learner, dataset.period_s, recorder, output_dir)
         if learner.redraws_random_layer:
-            repeated = robustness(
-                {self.learner_name: learner},
-                dataset.test,
-                self.robustness_repeats,
-                recorder=recorder,
-                output_dir=output_dir,
-            )
-            sections["robustness"] = _one_learner(repeated, self.learner_name)
+            sections["robustness"] = self._robustness(learner, dataset, recorder, output_dir)
         skipped = ["prediction.step_response"]
         if self.controllers and self.references:
             sections["tracking"] = {"skipped": why}
@@ -207,6 +193,19 @@ class Pipeline:
             skipped.append("generalization")
         log.info("%s skipped: %s", ", ".join(skipped), why)
         return sections
+
+    def _robustness(
+        self, learner: Learner, dataset: Dataset, recorder: Recorder, output_dir: Path
+    ) -> dict[str, Any]:
+        """The paper's robustness experiment: predictions with the random layer redrawn."""
+        repeated = robustness(
+            {self.learner_name: learner},
+            dataset.test,
+            self.robustness_repeats,
+            recorder=recorder,
+            output_dir=output_dir,
+        )
+        return _one_learner(repeated, self.learner_name)
 
     def _learner(
         self,
