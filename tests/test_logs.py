@@ -303,6 +303,30 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
     model = run_dir / "model_input_edmd.pt"
     from learners import load as load_learner
 
+    # The model steps once per 50 ms: on the same logs kept every 10 ms it is refused.
+    again = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "harness",
+            "data=ddk_carsim",
+            f"data.path={clone}",
+            f"data.root={tmp_path}/store",
+            "data.model_period_s=0.01",
+            "learner=input_edmd",
+            "learner.dictionary.num_centers=20",
+            f"task.model_path={model}",
+            "recorder=none",
+            f"hydra.run.dir={tmp_path / 'again'}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert again.returncode != 0
+    assert "was fitted at a period of 0.05 s, but the data's is 0.01 s" in again.stderr
+
     assert load_learner(model).normalizer_.channels == (
         InputChannel("front_wheel_angle_rad"),
         InputChannel("throttle"),

@@ -221,6 +221,7 @@ class Pipeline:
             learner = self.loaded
             source = str(Path(str(self.model_path)).resolve())
             check_inputs(learner, dataset.normalizer.input_names, f"task.model_path {source}")
+            provenance.check_period(source, learner.provenance_, dataset.period_s)
         else:
             learner = training_report.fit(
                 self.learner,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -21,7 +22,7 @@ from harness.core.episode import MinMaxNormalizer
 from harness.data.store import Dataset
 from harness.plant import Sedan
 
-__all__ = ["compare", "of_logs", "of_run"]
+__all__ = ["check_period", "compare", "of_logs", "of_run"]
 
 log = logging.getLogger(__name__)
 
@@ -37,12 +38,30 @@ def of_run(plant: Sedan, dataset: Dataset) -> dict[str, Any]:
         "plant": plant.params.name,
         "plant_fingerprint": hashlib.sha256(text.encode()).hexdigest()[:16],
         "dataset": dataset.key,
+        "period_s": dataset.period_s,
     }
 
 
 def of_logs(dataset: Dataset) -> dict[str, Any]:
-    """What a model fitted on a user's logs records: no plant, the dataset's key."""
-    return {"plant": None, "plant_fingerprint": None, "dataset": dataset.key}
+    """What a model fitted on a user's logs records: no plant, the dataset's key and period."""
+    return {
+        "plant": None,
+        "plant_fingerprint": None,
+        "dataset": dataset.key,
+        "period_s": dataset.period_s,
+    }
+
+
+def check_period(source: str, recorded: Mapping[str, Any], period_s: float) -> None:
+    """Refuse, in one line, a model fitted at another period than the data's: it steps once per
+    period, so at another one every prediction is of another time. A file from before the
+    period was recorded is not checked."""
+    trained = recorded.get("period_s")
+    if trained is not None and not math.isclose(float(trained), period_s, rel_tol=1e-6):
+        raise ValueError(
+            f"task.model_path {source} was fitted at a period of {float(trained):g} s, but the "
+            f"data's is {period_s:g} s: fit the learner on this data, or use a model of its period"
+        )
 
 
 def compare(
