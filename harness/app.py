@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
 import sys
+import time
 import traceback
 from pathlib import Path
 from typing import Any
@@ -144,11 +147,79 @@ def _job(cfg: DictConfig) -> None:
             unlock_directory(output_dir)
 
 
+# What a finished job leaves beside metrics.json: the digest of the config it ran. A sweep rerun
+# into the same directory skips a job whose digest matches (and whose metrics.json is there),
+# so a sweep of hours can be stopped and started again; anything else runs (again).
+FINISHED = "finished.json"
+# Where or how fast a job runs, never what it computes (harness.report.jobs.NEUTRAL's keys).
+_NEUTRAL_KEYS = ("recorder", "data.root", "data.workers")
+_NEUTRAL_LEAVES = ("progress", "num_threads")
+
+
+def config_digest(cfg: DictConfig) -> str:
+    """SHA-256 of the job's config as composed (interpolations unresolved, Hydra's own node and
+    the settings that change no number left out)."""
+    values = OmegaConf.to_container(cfg, resolve=False)
+    assert isinstance(values, dict)
+    values.pop("hydra", None)
+    for key in _NEUTRAL_KEYS:
+        *parents, leaf = key.split(".")
+        node: Any = values
+        for parent in parents:
+            node = node.get(parent, {}) if isinstance(node, dict) else {}
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    _drop_leaves(values, _NEUTRAL_LEAVES)
+    text = json.dumps(values, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _drop_leaves(node: Any, names: tuple[str, ...]) -> None:
+    if isinstance(node, dict):
+        for name in names:
+            node.pop(name, None)
+        for child in node.values():
+            _drop_leaves(child, names)
+    elif isinstance(node, list):
+        for child in node:
+            _drop_leaves(child, names)
+
+
+def finished_before(digest: str, output_dir: Path) -> bool:
+    """Whether ``output_dir`` holds the finished job of the config with ``digest``: its
+    metrics.json, no error, and a ``finished.json`` with that digest."""
+    try:
+        record = json.loads((output_dir / FINISHED).read_text())
+    except (OSError, ValueError):
+        return False
+    return (
+        isinstance(record, dict)
+        and record.get("config_sha256") == digest
+        and (output_dir / "metrics.json").is_file()
+        and not (output_dir / "error.json").exists()
+    )
+
+
 def _run_and_record(cfg: DictConfig, output_dir: Path, multirun: bool) -> None:
-    # A rerun into the directory of a failed job: its old error must not outlive this run.
+    digest = config_digest(cfg)  # before the run: building the parts may touch the config
+    if multirun and finished_before(digest, output_dir):
+        log.info(
+            "skipped %s: it finished before with the same config (its metrics.json stays; "
+            "delete %s to run it again)",
+            output_dir.name,
+            output_dir / FINISHED,
+        )
+        return
+    # A rerun into the directory of a failed job: its old error must not outlive this run, nor
+    # an old finished.json a run that fails.
     (output_dir / "error.json").unlink(missing_ok=True)
+    (output_dir / FINISHED).unlink(missing_ok=True)
     try:
         run(cfg, output_dir)
+        write_json_atomic(
+            output_dir / FINISHED,
+            {"config_sha256": digest, "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z")},
+        )
     except Exception as error:
         message = _record_failure(output_dir, error)
         log.error(message)

@@ -160,3 +160,26 @@ def test_a_killed_run_leaves_its_directory_free(tmp_path: Path) -> None:
     free = try_lock(run_dir / ".lock")
     assert free is not None
     os.close(free)
+
+
+def test_a_jobs_config_digest_changes_with_what_it_computes_not_with_where_it_runs() -> None:
+    """The digest a sweep rerun compares (``finished.json``): a ridge, a seed or a learner make
+    another job; the dataset's directory, the worker count, the recorder and the progress bar
+    do not."""
+    from hydra import compose, initialize_config_dir
+
+    from harness.app import config_digest
+    from harness.core.paths import CONF_DIR
+
+    def digest(*overrides: str) -> str:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return config_digest(compose("config", overrides=["learner=input_edmd", *overrides]))
+
+    base = digest()
+    for same in ("data.root=/elsewhere", "data.workers=1", "recorder=none"):
+        assert digest(same) == base, same
+    assert digest("learner=deep_edmd", "learner.training.progress=false") == digest(
+        "learner=deep_edmd"
+    )
+    for other in ("learner.ridge=1e-3", "seed=1", "learner=edmd", "data.episodes=20"):
+        assert digest(other) != base, other

@@ -155,6 +155,30 @@ def test_a_killed_sweep_counts_the_jobs_it_never_started_and_its_rerun_leaves_no
     assert {p.name for p in (copy / "report").glob("*.png")} == linked
 
 
+def test_a_sweep_rerun_into_its_directory_skips_the_finished_jobs_and_runs_the_rest(
+    tiny_sweep: Path, tmp_path: Path
+) -> None:
+    """Stop a long sweep and start it again: each job whose metrics.json is complete with the
+    same config is skipped and says so; a job that failed, never finished or now has another
+    config runs again."""
+    copy = tmp_path / "multirun"
+    shutil.copytree(tiny_sweep, copy, ignore=shutil.ignore_patterns("bad"))
+    jobs = {j.name: j.path for j in read_runs(copy)}
+    assert len(jobs) == 4
+    stamps = {name: (path / "metrics.json").stat().st_mtime_ns for name, path in jobs.items()}
+    (unfinished,) = [p for n, p in jobs.items() if "learner=elm_edmd," in n and "seed=1" in n]
+    (unfinished / "finished.json").unlink()  # as a job killed before its end leaves it
+    again = sweep(tmp_path, copy, "learner=edmd,elm_edmd", "seed=0,1")
+    assert again.returncode == 0, again.stderr[-3000:]
+    said = again.stdout + again.stderr
+    for name, path in jobs.items():
+        rerun = path == unfinished
+        assert (f"skipped {name}: it finished before" in said) is not rerun
+        assert ((path / "metrics.json").stat().st_mtime_ns != stamps[name]) is rerun
+    assert (unfinished / "finished.json").exists()
+    assert "4 of 4 jobs finished" in (copy / "report" / "report.md").read_text()
+
+
 @pytest.mark.parametrize("damaged", ["metrics.json", ".hydra/hydra.yaml"])
 def test_a_damaged_job_file_is_named_in_the_failures_and_the_rest_reported(
     tiny_sweep: Path, tmp_path: Path, damaged: str
