@@ -322,3 +322,17 @@ def test_the_lane_change_is_judged_on_its_course(edmd_run) -> None:
     assert (out / "course_lane_change.png").stat().st_size > 10_000
     arrays = load_arrays(out / "course_lane_change.npz")
     assert arrays["cones"].shape == (50, 2)
+
+
+def test_persistence_as_the_learner_skips_its_controller_not_the_baseline(tmp_path: Path) -> None:
+    """learner=persistence: no MPC reads a held state, so DE-MPC is skipped with the reason;
+    the physics baseline still tracks (its own model), and persistence's own prediction is the
+    closed form: its RMSE over the whole drive equals prediction.persistence's."""
+    metrics = run_main(tmp_path, tmp_path / "run", "learner=persistence")
+    tracking = metrics["tracking"]
+    assert "persistence is not a lifted-linear model" in tracking["skipped"]
+    baseline = tracking["controllers"]["bicycle_mpc"]
+    assert all("rmse" in run for run in baseline.values()) and baseline
+    prediction = metrics["prediction"]
+    for episode, held in prediction["persistence"].items():
+        assert prediction[episode]["rmse"] == held["rmse"]

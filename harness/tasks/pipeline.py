@@ -284,9 +284,11 @@ class Pipeline:
         same training episodes; where that fit refuses the data (a tiny dataset), the reason,
         reported as the controller's ``skipped`` instead of failing the run."""
         models: dict[str, Learner | str] = {}
+        reason = _not_lifted_linear(learner)
         for name, make in self.controllers.items():
             if not isinstance(make, OwnModelFactory):
-                models[name] = learner
+                # A model no MPC reads (persistence) skips its controllers, not the baseline.
+                models[name] = f"{self.learner_name} {reason}" if reason else learner
                 continue
             own = make.learner()
             try:
@@ -310,9 +312,6 @@ class Pipeline:
         the first controller's run of the first reference is the top level."""
         if not self.controllers or not self.references:
             return None
-        reason = _not_lifted_linear(learner)
-        if reason:
-            return {"skipped": f"{self.learner_name} {reason}"}
         targets = {
             name: (reference.label(name, episodes), reference.build(plant.dt, episodes))
             for name, reference in self.references.items()
