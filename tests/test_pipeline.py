@@ -328,7 +328,10 @@ def test_persistence_as_the_learner_skips_its_controller_not_the_baseline(tmp_pa
     """learner=persistence: no MPC reads a held state, so DE-MPC is skipped with the reason;
     the physics baseline still tracks (its own model), and persistence's own prediction is the
     closed form: its RMSE over the whole drive equals prediction.persistence's."""
-    metrics = run_main(tmp_path, tmp_path / "run", "learner=persistence")
+    # Drives that start rolling, so the baseline has a model to identify.
+    metrics = run_main(
+        tmp_path, tmp_path / "run", "learner=persistence", "data.start_speed_mps=[10,20]"
+    )
     tracking = metrics["tracking"]
     assert "persistence is not a lifted-linear model" in tracking["skipped"]
     baseline = tracking["controllers"]["bicycle_mpc"]
