@@ -34,7 +34,6 @@ from harness.core.contracts import STATE_NAMES
 from harness.core.episode import POSE_NAMES, Episode, InputChannel, MinMaxNormalizer
 from harness.core.files import write_atomic
 from harness.data.store import (
-    MANIFEST,
     SPLITS,
     DatasetError,
     _locked,
@@ -471,7 +470,6 @@ def import_logs(logs: LogsConfig) -> Path:
             "complete": True,
         }
         _write_manifest(directory, manifest)
-    assert (directory / MANIFEST).exists()
     return directory
 
 
