@@ -255,12 +255,11 @@ def test_the_authors_split_is_matched_exactly_and_is_the_presets(tmp_path: Path)
         authors_split(clone)
 
 
-def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path) -> None:
-    """data=ddk_carsim on a synthetic clone: fit, predict (whole runs, windows, persistence),
-    spectrum; step responses and tracking skipped with the reason, at the logs' 50 ms."""
-    clone = ddk_clone(tmp_path / "DDK")
-    run_dir = tmp_path / "run"
-    result = subprocess.run(
+def harness_on(
+    clone: Path, tmp_path: Path, run_dir: Path, *overrides: str
+) -> subprocess.CompletedProcess:
+    """``python -m harness data=ddk_carsim`` on ``clone`` with a small input EDMD."""
+    return subprocess.run(
         [
             sys.executable,
             "-m",
@@ -272,12 +271,21 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
             "learner.dictionary.num_centers=20",
             "recorder=none",
             f"hydra.run.dir={run_dir}",
+            *overrides,
         ],
         cwd=tmp_path,
         capture_output=True,
         text=True,
         timeout=600,
     )
+
+
+def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path) -> None:
+    """data=ddk_carsim on a synthetic clone: fit, predict (whole runs, windows, persistence),
+    spectrum; step responses and tracking skipped with the reason, at the logs' 50 ms."""
+    clone = ddk_clone(tmp_path / "DDK")
+    run_dir = tmp_path / "run"
+    result = harness_on(clone, tmp_path, run_dir)
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["data"]["inputs"] == ["front_wheel_angle_rad", "throttle", "brake_mpa"]
@@ -304,25 +312,8 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
     from learners import load as load_learner
 
     # The model steps once per 50 ms: on the same logs kept every 10 ms it is refused.
-    again = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "harness",
-            "data=ddk_carsim",
-            f"data.path={clone}",
-            f"data.root={tmp_path}/store",
-            "data.model_period_s=0.01",
-            "learner=input_edmd",
-            "learner.dictionary.num_centers=20",
-            f"task.model_path={model}",
-            "recorder=none",
-            f"hydra.run.dir={tmp_path / 'again'}",
-        ],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=600,
+    again = harness_on(
+        clone, tmp_path, tmp_path / "again", "data.model_period_s=0.01", f"task.model_path={model}"
     )
     assert again.returncode != 0
     assert "was fitted at a period of 0.05 s, but the data's is 0.01 s" in again.stderr
