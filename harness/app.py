@@ -30,7 +30,7 @@ from harness.core.files import (
 )
 from harness.core.paths import CONF_DIR
 from harness.output import update_metrics
-from harness.report.jobs import job_dirname
+from harness.report.jobs import NEUTRAL, job_dirname
 
 log = logging.getLogger(__name__)
 
@@ -151,38 +151,23 @@ def _job(cfg: DictConfig) -> None:
 # into the same directory skips a job whose digest matches (and whose metrics.json is there),
 # so a sweep of hours can be stopped and started again; anything else runs (again).
 FINISHED = "finished.json"
-# Where or how fast a job runs, never what it computes (harness.report.jobs.NEUTRAL's keys).
-_NEUTRAL_KEYS = ("recorder", "data.root", "data.workers")
-_NEUTRAL_LEAVES = ("progress", "num_threads")
 
 
 def config_digest(cfg: DictConfig) -> str:
-    """SHA-256 of the job's config as composed (interpolations unresolved, Hydra's own node and
-    the settings that change no number left out)."""
+    """SHA-256 of the job's config as composed (interpolations unresolved), without Hydra's own
+    node and the settings that change no number (``harness.report.jobs.NEUTRAL``)."""
     values = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(values, dict)
     values.pop("hydra", None)
-    for key in _NEUTRAL_KEYS:
+    for key in NEUTRAL:
         *parents, leaf = key.split(".")
         node: Any = values
         for parent in parents:
             node = node.get(parent, {}) if isinstance(node, dict) else {}
         if isinstance(node, dict):
             node.pop(leaf, None)
-    _drop_leaves(values, _NEUTRAL_LEAVES)
     text = json.dumps(values, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _drop_leaves(node: Any, names: tuple[str, ...]) -> None:
-    if isinstance(node, dict):
-        for name in names:
-            node.pop(name, None)
-        for child in node.values():
-            _drop_leaves(child, names)
-    elif isinstance(node, list):
-        for child in node:
-            _drop_leaves(child, names)
 
 
 def finished_before(digest: str, output_dir: Path) -> bool:

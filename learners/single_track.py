@@ -54,7 +54,7 @@ import numpy as np
 import torch
 from scipy.optimize import minimize_scalar
 
-from harness.core.episode import SEDAN_INPUTS, Episode, MinMaxNormalizer
+from harness.core.episode import SEDAN_INPUTS, Episode, MinMaxNormalizer, input_features
 from learners.base import Learner, Shape, check_fit_data, check_positive, check_rollout_args
 
 __all__ = ["SingleTrack", "coefficient_names", "form_of"]
@@ -251,8 +251,7 @@ class SingleTrack(Learner):
     def _stable_substeps(self, fastest_mps: float) -> int:
         """Euler sub-steps per period that keep every lateral eigenvalue λ stable with a factor
         2 margin (h |λ|² <= |Re λ|), from min_speed_mps to ``fastest_mps``."""
-        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6]
-        del t1, t4
+        _, t2, t3, _, t5, t6 = self.coefficients_[:6]
         needed = 1
         for vx in np.linspace(self.min_speed, max(fastest_mps, self.min_speed), 50):
             w = max(vx, self.min_speed)
@@ -381,7 +380,7 @@ class SingleTrack(Learner):
         """The inputs as the model is linear in them (before a fit: the sedan's)."""
         if hasattr(self, "normalizer_"):
             return self.normalizer_.input_features(inputs)
-        return np.stack([c.feature(inputs[..., j]) for j, c in enumerate(SEDAN_INPUTS)], -1)
+        return input_features(inputs, SEDAN_INPUTS)
 
     # -- the LinearizableModel contract (normalized units) ----------------------------------
 

@@ -142,7 +142,7 @@ class MinMaxNormalizer:
                     f"({', '.join(episodes[0].input_names)})"
                 )
         states = np.concatenate([e.states for e in episodes])
-        features = _features(np.concatenate([e.inputs for e in episodes]), channels)
+        features = input_features(np.concatenate([e.inputs for e in episodes]), channels)
         return cls(states.min(0), states.max(0), features.min(0), features.max(0), channels)
 
     @property
@@ -160,7 +160,7 @@ class MinMaxNormalizer:
 
     def input_features(self, u: np.ndarray) -> np.ndarray:
         """The inputs ``u`` (..., m) in the units the models are fitted in (before min-max)."""
-        return _features(u, self.channels)
+        return input_features(u, self.channels)
 
     def inputs(self, u: np.ndarray) -> np.ndarray:
         span = self._span(self.input_min, self.input_max)
@@ -196,6 +196,7 @@ class MinMaxNormalizer:
 _RANGES = ("state_min", "state_max", "input_min", "input_max")
 
 
-def _features(u: np.ndarray, channels: Sequence[InputChannel]) -> np.ndarray:
+def input_features(u: np.ndarray, channels: Sequence[InputChannel]) -> np.ndarray:
+    """Inputs ``u`` (..., m) as the features of ``channels`` (see :class:`InputChannel`)."""
     u = np.asarray(u, dtype=float)
     return np.stack([c.feature(u[..., j]) for j, c in enumerate(channels)], axis=-1)

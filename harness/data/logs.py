@@ -312,12 +312,6 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
             f"is not sampled at one period ({period:g} s; {steps[row - 1]:g} s before data row "
             f"{row + 1}): resample it"
         )
-    if (
-        logs.period_s is not None
-        and logs.time is not None
-        and not math.isclose(period, logs.period_s, rel_tol=1e-3)
-    ):
-        raise ValueError(f"is sampled every {period:g} s, not data.period_s = {logs.period_s:g}")
     every = decimation(period, logs.model_period_s)
     kept = slice(0, None, every)
     time_s = time_s[kept] - time_s[0]

@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.core.contracts import INPUT_NAMES as SEDAN_INPUTS_NAMES
 from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel
 from harness.evaluation.prediction import plot_prediction
 from harness.evaluation.tracking import load_run, plot_tracking
@@ -103,7 +102,7 @@ def prediction_figures(jobs: list[Run], out: Path, subdir: str = "") -> list[Pat
 def _channels(job: Run) -> tuple[InputChannel, ...]:
     """The inputs a job's data had (``data.inputs``; the sedan's where a job does not say)."""
     names = (job.metrics or {}).get("data", {}).get("inputs")
-    if not names or tuple(names) == SEDAN_INPUTS_NAMES:
+    if not names or tuple(names) == tuple(c.name for c in SEDAN_INPUTS):
         return SEDAN_INPUTS
     return tuple(InputChannel(str(n)) for n in names)
 

@@ -136,22 +136,37 @@ class Pipeline:
         return loaded
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
+        """Data, fit, predictions and spectrum; then, on drives of ``plant``, step responses,
+        tracking and other plants. On a user's logs those need the car that made the logs and
+        are skipped, each named in one line saying why; the spectrum is at the logs' period."""
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
-        if dataset.from_logs:
-            return self._on_logs(dataset, data_metrics, recorder, output_dir)
-        data_metrics |= reference_speeds(self.references, plant.dt, dataset)
+        logs = dataset.from_logs
+        if not logs:
+            data_metrics |= reference_speeds(self.references, plant.dt, dataset)
         if self.loaded is None:
+            if logs:  # sized by the logs once they are read, still before the fit
+                self.learner.check_size(max(len(e) for e in dataset.episodes()))
             check_training_data(dataset)
         sections: dict[str, Any] = {"data": data_metrics}
-        this_run = provenance.of_run(plant, dataset)
+        this_run = provenance.of_logs(dataset) if logs else provenance.of_run(plant, dataset)
         learner, sections["training"] = self._learner(dataset, this_run, recorder, output_dir)
-        sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
-        sections["prediction"]["step_response"] = self._step_response(
-            learner, plant, recorder, output_dir
-        )
-        sections["spectrum"] = self._spectrum(learner, plant.dt, recorder, output_dir)
+        prediction = self._predict(learner, dataset.test, recorder, output_dir)
+        sections["prediction"] = prediction
+        if not logs:
+            prediction["step_response"] = self._step_response(learner, plant, recorder, output_dir)
+        period = dataset.period_s if logs else plant.dt
+        sections["spectrum"] = self._spectrum(learner, period, recorder, output_dir)
         if learner.redraws_random_layer:
-            sections["robustness"] = self._robustness(learner, dataset, recorder, output_dir)
+            repeated = robustness(
+                {self.learner_name: learner},
+                dataset.test,
+                self.robustness_repeats,
+                recorder=recorder,
+                output_dir=output_dir,
+            )
+            sections["robustness"] = _one_learner(repeated, self.learner_name)
+        if logs:
+            return sections | self._skipped_on_logs(prediction)
         models = self._controller_models(learner, dataset)
         tracking = self._track(models, learner, plant, dataset.test, recorder, output_dir)
         if tracking is not None:
@@ -163,49 +178,20 @@ class Pipeline:
             }
         return sections
 
-    def _on_logs(
-        self, dataset: Dataset, data_metrics: dict[str, Any], recorder: Recorder, output_dir: Path
-    ) -> dict[str, Any]:
-        """The pipeline on a user's logs: fit, predict the test logs and the spectrum at the
-        logs' period. What needs the car that made the logs (the step responses against it,
-        closed-loop tracking, other plants) is skipped, each with one line saying why."""
-        if self.loaded is None:
-            self.learner.check_size(max(len(e) for e in dataset.episodes()))
-            check_training_data(dataset)
-        sections: dict[str, Any] = {"data": data_metrics}
-        this_run = provenance.of_logs(dataset)
-        learner, sections["training"] = self._learner(dataset, this_run, recorder, output_dir)
-        sections["prediction"] = self._predict(learner, dataset.test, recorder, output_dir)
+    def _skipped_on_logs(self, prediction: dict[str, Any]) -> dict[str, Any]:
+        """What a run on logs leaves out, each section's ``skipped`` saying why (one line)."""
         why = (
             f"data={self.data.name} are logs, not drives of this harness's plant; this needs "
             "the car that made them"
         )
-        sections["prediction"]["step_response"] = {"skipped": why}
-        sections["spectrum"] = self._spectrum(learner, dataset.period_s, recorder, output_dir)
-        if learner.redraws_random_layer:
-            sections["robustness"] = self._robustness(learner, dataset, recorder, output_dir)
-        skipped = ["prediction.step_response"]
+        prediction["step_response"] = {"skipped": why}
+        skipped: dict[str, Any] = {}
         if self.controllers and self.references:
-            sections["tracking"] = {"skipped": why}
-            skipped.append("tracking")
+            skipped["tracking"] = {"skipped": why}
         if self.other_plants:
-            sections["generalization"] = {"skipped": why}
-            skipped.append("generalization")
-        log.info("%s skipped: %s", ", ".join(skipped), why)
-        return sections
-
-    def _robustness(
-        self, learner: Learner, dataset: Dataset, recorder: Recorder, output_dir: Path
-    ) -> dict[str, Any]:
-        """The paper's robustness experiment: predictions with the random layer redrawn."""
-        repeated = robustness(
-            {self.learner_name: learner},
-            dataset.test,
-            self.robustness_repeats,
-            recorder=recorder,
-            output_dir=output_dir,
-        )
-        return _one_learner(repeated, self.learner_name)
+            skipped["generalization"] = {"skipped": why}
+        log.info("%s skipped: %s", ", ".join(["prediction.step_response", *skipped]), why)
+        return skipped
 
     def _learner(
         self,
