@@ -21,7 +21,7 @@ from typing import Any
 
 from bench.machine import describe
 from controllers import BicycleMPCConfig, DEMPCConfig
-from harness.core.contracts import LiftedModel, LinearizableModel
+from harness.core.contracts import Model
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, collect_counted, load
 from harness.evaluation.tracking import track
@@ -85,7 +85,7 @@ def main() -> None:
     for name in args.learners.split(","):
         learner: Learner = LEARNERS[name]()
         model = learner.fit(dataset.train, dataset.validation, dataset.normalizer)
-        assert isinstance(model, LiftedModel | LinearizableModel)
+        assert isinstance(model, Model)
         factory = BicycleMPCConfig if name == "single_track" else DEMPCConfig
         for mode, keys in modes:
             controller = factory(Np=Np, Nc=Nc, **keys)(model, plant.dt)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from controllers.de_mpc import DEMPC, DEMPCConfig
-from harness.core.contracts import LiftedModel, LinearizableModel
+from harness.core.contracts import Model
 from learners.single_track import SingleTrack
 
 
@@ -48,9 +48,7 @@ class BicycleMPCConfig(DEMPCConfig):
         """The unfitted single-track model this controller runs on."""
         return SingleTrack(**dict(self.model or {}))
 
-    def __call__(
-        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
-    ) -> DEMPC:
+    def __call__(self, model: Model, control_period_s: float | None = None) -> DEMPC:
         if not isinstance(model, SingleTrack):
             raise ValueError(
                 "controller=bicycle_mpc runs on the single-track model it identifies itself "

@@ -14,7 +14,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from harness.core.contracts import Controller, LiftedModel, LinearizableModel
+from harness.core.contracts import Controller, Model
 from learners.base import Learner
 
 
@@ -26,9 +26,7 @@ class ControllerFactory(Protocol):
 
     compute_delay: str
 
-    def __call__(
-        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
-    ) -> Controller: ...
+    def __call__(self, model: Model, control_period_s: float | None = None) -> Controller: ...
 
 
 @runtime_checkable
@@ -43,9 +41,7 @@ class OwnModelFactory(Protocol):
         """The unfitted model the controller runs on."""
         ...
 
-    def __call__(
-        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
-    ) -> Controller: ...
+    def __call__(self, model: Model, control_period_s: float | None = None) -> Controller: ...
 
 
 def check_controller_config(node: DictConfig) -> ControllerFactory:

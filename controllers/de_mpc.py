@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -43,7 +43,9 @@ from harness.core.contracts import (
     BilinearModel,
     LiftedModel,
     LinearizableModel,
+    Model,
     StepInfo,
+    dynamics_of,
 )
 from harness.core.episode import MinMaxNormalizer
 from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
@@ -197,9 +199,7 @@ class DEMPCConfig:
             )
         return np.diag(diagonal)
 
-    def __call__(
-        self, model: LiftedModel | LinearizableModel, control_period_s: float | None = None
-    ) -> DEMPC:
+    def __call__(self, model: Model, control_period_s: float | None = None) -> DEMPC:
         """DE-MPC on ``model``; ``control_period_s`` (the plant's, when known) must equal dt.
 
         The model predicts one step per dt and the reference is indexed by t / dt: on a plant
@@ -224,9 +224,7 @@ class DEMPC:
     :class:`TimeVaryingQP` (``sqp_iterations`` times, re-linearising along the new plan).
     """
 
-    def __init__(
-        self, model: LiftedModel | LinearizableModel, config: DEMPCConfig | None = None
-    ) -> None:
+    def __init__(self, model: Model, config: DEMPCConfig | None = None) -> None:
         config = DEMPCConfig() if config is None else config
         self.config = config
         self.model = model
@@ -235,7 +233,7 @@ class DEMPC:
         Q, R = config.weights()
         self.linearization = _linearization(model)
         if self.linearization is None:
-            A, B, C = _check_model(model)
+            A, B, C = _check_model(cast(LiftedModel, model))
         else:
             C = _check_linearizable(self.linearization)
         self.normalizer: MinMaxNormalizer = model.normalizer_
@@ -713,14 +711,19 @@ def _held(plan: np.ndarray, steps: int) -> np.ndarray:
     return np.vstack([plan, np.repeat(plan[-1:], steps - len(plan), axis=0)])
 
 
-def _linearization(model: LiftedModel | LinearizableModel) -> LinearizableModel | None:
-    """How DE-MPC reads ``model``: None for lifted-linear (one QP for the whole run), else the
-    model to linearise each step. A bilinear model is a ``LiftedModel`` too, so it is asked
-    first: read as linear it would lose its H_."""
-    if isinstance(model, BilinearModel):
-        return BilinearLinearization(model)
-    if isinstance(model, LinearizableModel):
-        return model
+def _linearization(model: Model) -> LinearizableModel | None:
+    """How DE-MPC reads ``model``, by the dynamics it declares: None for lifted-linear (one QP for
+    the whole run), else the model to linearise each step."""
+    dynamics = dynamics_of(model)
+    if dynamics is None:
+        raise ValueError(
+            f"{type(model).__name__} declares no dynamics (linear, bilinear or nonlinear): "
+            "DE-MPC reads only a fitted model of harness.core.contracts"
+        )
+    if dynamics == "bilinear":
+        return BilinearLinearization(cast(BilinearModel, model))
+    if dynamics == "nonlinear":
+        return cast(LinearizableModel, model)
     return None
 
 
@@ -831,14 +834,8 @@ def _check_range(name: str, low: float, high: float, unit: str) -> None:
         )
 
 
-def _check_model(
-    model: LiftedModel | LinearizableModel,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _check_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The contract, checked once: shapes agree and lift returns the lifted dimension."""
-    if not isinstance(model, LiftedModel):
-        raise ValueError(
-            "model lacks A_, B_, C_, normalizer_ or lift: is it fitted and lifted-linear?"
-        )
     A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))
     size = A.shape[0] if A.ndim == 2 else -1
     for name, array, shape in (

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
+from harness.core.contracts import Dynamics
 from harness.core.episode import Episode, MinMaxNormalizer
 
 
@@ -33,6 +35,7 @@ class LiftedLinearModel:
 
     A_: np.ndarray
     B_: np.ndarray
+    dynamics: ClassVar[Dynamics] = "linear"
     normalizer_: MinMaxNormalizer
     features: Callable[[np.ndarray], np.ndarray] = field(default=polynomial_features)
     C_: np.ndarray = field(init=False)  # the state is the lift's first three coordinates

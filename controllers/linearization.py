@@ -14,14 +14,18 @@ with A_k = A + Σⱼ (v̄_kj − v0ⱼ) Hⱼ, B_k = B + [H₁ z̄_k … H_m z̄_
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
-from harness.core.contracts import BilinearModel
+from harness.core.contracts import BilinearModel, Dynamics
 from harness.core.episode import MinMaxNormalizer
 
 
 class BilinearLinearization:
     """A bilinear model read as a :class:`~harness.core.contracts.LinearizableModel`."""
+
+    dynamics: ClassVar[Dynamics] = "nonlinear"
 
     def __init__(self, model: BilinearModel) -> None:
         self.model = model

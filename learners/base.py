@@ -30,6 +30,7 @@ from typing import Any, ClassVar, NamedTuple, Self
 import numpy as np
 import torch
 
+from harness.core import contracts
 from harness.core.checks import is_number
 from harness.core.contracts import STATE_NAMES
 from harness.core.episode import Episode, MinMaxNormalizer
@@ -65,8 +66,9 @@ class Dim(NamedTuple):
 Shape = tuple[int | Dim, ...]
 
 
-class Learner(ABC):
-    """A model of x_{k+1} = f(x_k, u_k) learned from episodes.
+class Learner(contracts.Learner, ABC):
+    """The ABC that implements :class:`harness.core.contracts.Learner`: a model of
+    x_{k+1} = f(x_k, u_k) learned from episodes, saved to and loaded from one file format.
 
     Subclasses set ``name`` (their config-group name, used in messages and file names) and
     keep their hyperparameters as constructor keywords, so that a config maps 1:1 to the code.
@@ -89,28 +91,17 @@ class Learner(ABC):
         validation: Sequence[Episode],
         normalizer: MinMaxNormalizer,
     ) -> Self:
-        """Fit on ``train`` (``validation`` for early stopping where it applies); return self.
-
-        Data in, fitted attributes out: no files, recordings or figures (the caller's).
-        """
+        """As :meth:`harness.core.contracts.Learner.fit`."""
 
     @abstractmethod
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
-        """Open-loop rollout in physical units.
-
-        Args:
-            x0: (..., 3) initial states.
-            inputs: (..., T, 2) inputs u_0 .. u_{T-1}.
-
-        Returns:
-            (..., T + 1, 3) predicted states; row 0 is ``x0`` itself.
-        """
+        """As :meth:`harness.core.contracts.Learner.predict`."""
 
     def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> Path:
-        """Write the fitted model to one file that :func:`load` reads back; returns the path.
+        """As :meth:`harness.core.contracts.Learner.save`; the file is read back by :func:`load`.
 
-        ``provenance`` says what the model was trained on (plain values: the caller's words,
-        e.g. plant and dataset); None keeps what the file it was loaded from said.
+        ``provenance``: plain values in the caller's words (plant, dataset); None keeps what
+        the file it was loaded from said.
 
         Raises:
             ValueError: (one line) when a fitted array is NaN, infinite or mis-shaped: a
@@ -174,14 +165,12 @@ class Learner(ABC):
 
     @property
     def fit_summary(self) -> dict[str, Any]:
-        """What the fit chose that its hyperparameters do not say (JSON-ready; the run writes it
-        to ``training.fit``): empty unless a learner chooses something, as input EDMD its ridge."""
+        """Empty unless a learner chooses something, as input EDMD its ridge."""
         return {}
 
     # -- for subclasses -------------------------------------------------------------------------
 
     _hyperparameters: dict[str, Any]
-    normalizer_: MinMaxNormalizer
     # What the model was trained on, as its file said (plant, dataset; empty for a model fitted
     # here, or a file from before it was recorded): the caller compares it with its own run.
     provenance_: Mapping[str, Any] = MappingProxyType({})
@@ -200,20 +189,12 @@ class Learner(ABC):
         """Restore what :meth:`_state` returned (called on a freshly constructed learner)."""
 
 
-class KoopmanLearner(Learner):
-    """A learner whose model is linear in a lifted state (see the module docstring).
+class KoopmanLearner(Learner, contracts.LiftedModel):
+    """A learner whose model is linear in a lifted state (see the module docstring): fitted, it
+    is a :class:`~harness.core.contracts.LiftedModel` (``A_``, ``B_``, ``C_`` as float64 arrays,
+    ``normalizer_``, ``lift``)."""
 
-    Fitted attributes: ``A_`` (N, N), ``B_`` (N, m), ``C_`` (n, N) as float64 numpy arrays, and
-    ``normalizer_``.
-    """
-
-    A_: np.ndarray
-    B_: np.ndarray
-    C_: np.ndarray
-
-    @abstractmethod
-    def lift(self, x: np.ndarray) -> np.ndarray:
-        """Lifted state z = lift(x) of physical states x (..., 3) -> (..., N)."""
+    dynamics: ClassVar[contracts.Dynamics] = "linear"
 
 
 def load(

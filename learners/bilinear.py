@@ -43,6 +43,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from harness.core.contracts import Dynamics
 from harness.core.episode import MinMaxNormalizer
 from learners.base import INPUT_DIM, STATE_DIM, Shape, check_choice, check_rollout_args
 from learners.dictionaries import Dictionary
@@ -126,8 +127,11 @@ def bilinear_matrices(
 class BilinearOperator:
     """What every bilinear learner shares: ``v0_`` and the state matrix at a held input.
 
-    Mixed into a fitted learner with ``A_``, ``H_`` and ``normalizer_``.
+    Mixed into a fitted learner with ``A_``, ``H_`` and ``normalizer_``, ahead of it: a bilinear
+    learner declares ``bilinear`` dynamics (:class:`~harness.core.contracts.BilinearModel`).
     """
+
+    dynamics: ClassVar[Dynamics] = "bilinear"
 
     A_: np.ndarray
     H_: np.ndarray

@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from harness.core.contracts import Dynamics
 from harness.core.episode import Episode
 from learners.base import Shape, check_int, check_nonnegative
 from learners.nets import Dense, LayerSpec, NumpyMLP, mlp_apply, mlp_forward, mlp_specs
@@ -242,6 +243,7 @@ class DNN(TrainedLearner):
     """
 
     name: ClassVar[str] = "dnn"
+    dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
     C_: np.ndarray  # (n, n) = I: the lifted state is the normalized state
     _mlp: NumpyMLP
 

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from harness.core.budget import check_memory
+from harness.core.contracts import Dynamics
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
@@ -94,6 +95,7 @@ class InputEDMD(Learner):
     """
 
     name: ClassVar[str] = "input_edmd"
+    dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
 
     C_: np.ndarray
 

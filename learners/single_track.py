@@ -54,6 +54,7 @@ import numpy as np
 import torch
 from scipy.optimize import minimize_scalar
 
+from harness.core.contracts import Dynamics
 from harness.core.episode import SEDAN_INPUTS, Episode, MinMaxNormalizer, input_features
 from learners.base import Learner, Shape, check_fit_data, check_positive, check_rollout_args
 
@@ -109,6 +110,7 @@ class SingleTrack(Learner):
     """
 
     name: ClassVar[str] = "single_track"
+    dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
 
     def __init__(
         self,

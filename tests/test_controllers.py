@@ -25,7 +25,7 @@ from controllers import (
 from controllers.condensed_qp import PATHS, QP_SOLVERS
 from controllers.de_mpc import MAX_HORIZON_S
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
-from harness.core.contracts import Controller, LiftedModel, Plant, StepInfo
+from harness.core.contracts import Controller, LiftedModel, Plant, StepInfo, dynamics_of
 from harness.core.episode import Episode
 from harness.core.paths import CONF_DIR
 from harness.data.driver import DriverKnowledge
@@ -265,12 +265,55 @@ def test_exact_model_tracks_a_feasible_reference() -> None:
 
 
 def test_the_contracts_hold_for_the_controller_the_model_and_the_test_plant() -> None:
+    """Not just the members' names: each does what its contract says."""
     model = linear_model()
-    assert isinstance(model, LiftedModel)
-    assert isinstance(DEMPC(model), Controller)
-    plant = ModelPlant(model)
+    assert dynamics_of(model) == "linear" and isinstance(model, LiftedModel)
+    plant = ModelPlant(model, x0=np.array([20.0, 0.0, 0.0]))
     assert isinstance(plant, Plant)
-    assert plant.fingerprint != ModelPlant(model, x0=np.array([20.0, 0.0, 0.0])).fingerprint
+    x = plant.reset()
+    np.testing.assert_array_equal(x, [20.0, 0.0, 0.0])  # reset returns the state it starts at
+    controller = DEMPC(model)
+    assert isinstance(controller, Controller)
+    controller.reset(feasible_reference(model, steps=30))
+    u, info = controller.act(x, 0.0)
+    assert u.shape == (2,) and isinstance(info, StepInfo)
+    config = controller.config
+    assert config.steer_wheel_min_deg <= u[0] <= config.steer_wheel_max_deg
+    assert config.pedal_min <= u[1] <= config.pedal_max
+    z_next = model.A_ @ model.lift(x) + model.B_ @ model.normalizer_.inputs(u)
+    expected = model.normalizer_.states_inverse(model.C_ @ z_next)  # z⁺ = A z + B v, x = C z
+    np.testing.assert_allclose(plant.step(u), expected, atol=1e-9)
+    assert plant.pose.shape == (3,)
+    assert plant.fingerprint != ModelPlant(model, x0=np.array([10.0, 0.0, 0.0])).fingerprint
+
+
+def test_a_model_says_what_it_is_and_is_held_to_it() -> None:
+    """DE-MPC reads a model by the dynamics it declares, never by which members it happens to
+    have: a model that declares none, or declares one it lacks the members of, is refused in one
+    line."""
+    model = linear_model()
+
+    class Undeclared:  # every member of a LiftedModel, but no declared dynamics
+        A_, B_, C_, normalizer_ = model.A_, model.B_, model.C_, model.normalizer_
+
+        def lift(self, x: np.ndarray) -> np.ndarray:
+            return model.lift(x)
+
+    with pytest.raises(ValueError, match="declares no dynamics") as error:
+        DEMPC(Undeclared())  # type: ignore[arg-type]
+    assert "\n" not in str(error.value)
+
+    class Misdeclared(Undeclared):
+        dynamics = "bilinear"  # but it has no H_ nor v0_
+
+    with pytest.raises(ValueError, match="declares bilinear dynamics but lacks a member of Bil"):
+        DEMPC(Misdeclared())  # type: ignore[arg-type]
+
+    class Unknown(Undeclared):
+        dynamics = "quadratic"
+
+    with pytest.raises(ValueError, match="one of \\('linear', 'bilinear', 'nonlinear'\\)"):
+        dynamics_of(Unknown())
 
 
 def test_act_returns_the_input_and_the_horizon_it_plans() -> None:

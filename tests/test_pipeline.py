@@ -333,7 +333,7 @@ def test_persistence_as_the_learner_skips_its_controller_not_the_baseline(tmp_pa
         tmp_path, tmp_path / "run", "learner=persistence", "data.start_speed_mps=[10,20]"
     )
     tracking = metrics["tracking"]
-    assert "persistence is not a lifted-linear model" in tracking["skipped"]
+    assert "persistence is not a model a controller reads (it declares no" in tracking["skipped"]
     baseline = tracking["controllers"]["bicycle_mpc"]
     assert all("rmse" in run for run in baseline.values()) and baseline
     prediction = metrics["prediction"]

@@ -5,13 +5,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
 
-from harness.core.contracts import BilinearModel, LiftedModel
+from harness.core.contracts import Dynamics, dynamics_of
 from harness.core.episode import MinMaxNormalizer
-from harness.evaluation.spectrum import plot_spectrum, spectrum, state_matrices
+from harness.evaluation.spectrum import plot_spectrum, spectrum, spectrum_figure, state_matrices
 
 NORMALIZER = MinMaxNormalizer(
     np.array([0.0, -2.0, -1.0]),
@@ -24,6 +25,8 @@ NORMALIZER = MinMaxNormalizer(
 @dataclass
 class Linear:
     """z = [x_n; 1; w]: vx grows by 1 % a step, (vy, w) rotate at |λ| = 1.02, yaw rate decays."""
+
+    dynamics: ClassVar[Dynamics] = "linear"
 
     A_: np.ndarray = field(
         default_factory=lambda: np.block(
@@ -49,6 +52,8 @@ class Linear:
 class Bilinear(Linear):
     """Stable at zero input; full steering adds 0.03 to the yaw-rate mode's eigenvalue."""
 
+    dynamics: ClassVar[Dynamics] = "bilinear"
+
     H_: np.ndarray = field(default_factory=lambda: np.zeros((2, 5, 5)))
 
     def __post_init__(self) -> None:
@@ -62,7 +67,7 @@ class Bilinear(Linear):
 
 def test_modes_outside_the_unit_circle_are_named_counted_once_and_timed() -> None:
     model = Linear()
-    assert isinstance(model, LiftedModel) and not isinstance(model, BilinearModel)
+    assert dynamics_of(model) == "linear"
     metrics, eigenvalues = spectrum(model, dt=0.01)
     assert set(eigenvalues) == {"A"}
     assert metrics["max_abs_eigenvalue"] == pytest.approx(1.02)
@@ -79,7 +84,7 @@ def test_modes_outside_the_unit_circle_are_named_counted_once_and_timed() -> Non
 
 def test_a_bilinear_model_is_examined_at_zero_input_and_at_the_corners_of_the_input_box() -> None:
     model = Bilinear()
-    assert isinstance(model, BilinearModel)
+    assert dynamics_of(model) == "bilinear"
     matrices = state_matrices(model)
     assert list(matrices) == [
         "zero input",
@@ -96,7 +101,23 @@ def test_a_bilinear_model_is_examined_at_zero_input_and_at_the_corners_of_the_in
     assert {mode["dominant"] for mode in metrics["unstable_modes"]} == {"yaw_rate"}
 
 
-def test_the_figure_is_written(tmp_path: Path) -> None:
+def test_the_figure_plots_every_matrix_eigenvalues_and_zooms_onto_those_near_one() -> None:
     _, eigenvalues = spectrum(Bilinear(), dt=0.01)
-    path = plot_spectrum(eigenvalues, tmp_path / "spectrum.png", title="toy")
-    assert path.stat().st_size > 10_000
+    whole, zoom = spectrum_figure(eigenvalues, title="toy").axes
+    circle, *points = whole.get_lines()
+    np.testing.assert_allclose(np.hypot(*circle.get_data()), 1.0)  # the unit circle
+    assert len(points) == len(eigenvalues)
+    for line, (label, values) in zip(points, eigenvalues.items(), strict=True):
+        np.testing.assert_array_equal(line.get_data(), (values.real, values.imag))
+        assert line.get_label() == f"{label} (max |λ| {np.abs(values).max():.6f})"
+    # The zoom holds every eigenvalue within 0.1 of λ = 1 (here 1.01, the furthest) and is
+    # centred on 1.
+    low, high = zoom.get_xlim()
+    assert low < 0.99 and high > 1.01 and (low + high) / 2 == pytest.approx(1.0)
+    assert whole.get_title() == "toy"
+
+
+def test_the_figure_is_written_as_a_png(tmp_path: Path) -> None:
+    _, eigenvalues = spectrum(Linear(), dt=0.01)
+    path = plot_spectrum(eigenvalues, tmp_path / "nested" / "spectrum.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

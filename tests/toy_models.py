@@ -8,12 +8,12 @@ closed forms.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from controllers.lifted_linear import LiftedLinearModel
-from harness.core.contracts import STATE_NAMES, BilinearModel, LiftedModel
+from harness.core.contracts import STATE_NAMES, BilinearModel, Dynamics, LiftedModel
 from harness.core.episode import MinMaxNormalizer
 
 
@@ -53,6 +53,7 @@ class ToyBilinearModel:
     A_: np.ndarray
     B_: np.ndarray
     H_: np.ndarray
+    dynamics: ClassVar[Dynamics] = "bilinear"
     normalizer_: MinMaxNormalizer
     C_: np.ndarray = field(init=False)
 

@@ -1,12 +1,14 @@
-"""The three contracts of the harness, written down once: a plant, a lifted model, a controller.
-
-(:class:`BilinearModel` refines the lifted model: what sets a bilinear one apart from a linear one;
-:class:`LinearizableModel` is a nonlinear model a time-varying MPC linearises along its plan.)
+"""The contracts of the harness, each written down once: a plant, a learner, the models a
+controller reads, a controller, a reference.
 
 Everything that steps a car (data collection, characterization, closed-loop tracking) is typed
-against :class:`Plant`; every MPC reads a learner through :class:`LiftedModel`; every rollout
-drives a :class:`Controller`, whose ``act`` returns the input *and* a :class:`StepInfo`, so no
-caller ever probes a controller for attributes.
+against :class:`Plant`; every learner implements :class:`Learner` (``learners.base.Learner`` is the
+ABC that does); every MPC reads a :class:`Model`, which *declares* its dynamics (``linear``,
+``bilinear`` or ``nonlinear``) rather than being told apart by ``isinstance`` order:
+:class:`LiftedModel`, :class:`BilinearModel` and :class:`LinearizableModel` are what each kind
+adds; every rollout drives a :class:`Controller`, whose ``act`` returns the input *and* a
+:class:`StepInfo`, so no caller ever probes a controller for attributes; every tracking target
+is a :class:`Reference`.
 
 States and inputs are the paper's, in the harness's units:
 
@@ -17,13 +19,15 @@ States and inputs are the paper's, in the harness's units:
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
 if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import nothing heavy
-    from harness.core.episode import MinMaxNormalizer
+    from harness.core.episode import Episode, MinMaxNormalizer
     from harness.core.reference_path import ReferencePath
 
 STATE_NAMES: tuple[str, ...] = ("vx", "vy", "yaw_rate")
@@ -60,16 +64,49 @@ class Plant(Protocol):
         ...
 
 
-@runtime_checkable
-class LiftedModel(Protocol):
-    """A fitted Koopman model: z⁺ = A_ z + B_ v, x_norm = C_ z, z = lift(x) (paper eqs. 9-12).
+Dynamics = Literal["linear", "bilinear", "nonlinear"]
+DYNAMICS: tuple[Dynamics, ...] = ("linear", "bilinear", "nonlinear")
 
-    v = normalizer_.inputs(u) and x = normalizer_.states_inverse(C_ z): the model lives in the
+
+@runtime_checkable
+class Learner(Protocol):
+    """A model of x⁺ = f(x, u) fitted on episodes (``learners.base.Learner`` implements it)."""
+
+    normalizer_: MinMaxNormalizer  # the min-max scaling of the data it was fitted on
+
+    def fit(
+        self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
+    ) -> Learner:
+        """Fit on ``train`` (``validation`` to choose and stop where it applies); return self.
+        Data in, fitted attributes out: no files, recordings or figures (the caller's)."""
+        ...
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """Open-loop rollout in physical units: x0 (..., n), inputs (..., T, m) -> states
+        (..., T + 1, n), row 0 being ``x0``."""
+        ...
+
+    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> Path:
+        """Write the fitted model to one file (``learners.load`` reads it back); ``provenance``
+        says what it was trained on. A diverged fit is refused in one line, never saved."""
+        ...
+
+    @property
+    def fit_summary(self) -> dict[str, Any]:
+        """What the fit chose that its settings do not say (``training.fit``), JSON-ready."""
+        ...
+
+
+@runtime_checkable
+class Model(Protocol):
+    """What every model a controller reads has, in lifted coordinates z = lift(x): its declared
+    dynamics, the output map x_norm = C_ z, and the normalizer of its units.
+
+    v = normalizer_.inputs(u) and x = normalizer_.states_inverse(C_ z): a model lives in the
     min-max normalized units of the data it was fitted on.
     """
 
-    A_: np.ndarray  # (N, N)
-    B_: np.ndarray  # (N, m)
+    dynamics: ClassVar[Dynamics]  # which of the three below it is: a controller reads this
     C_: np.ndarray  # (n, N)
     normalizer_: MinMaxNormalizer
 
@@ -79,13 +116,21 @@ class LiftedModel(Protocol):
 
 
 @runtime_checkable
+class LiftedModel(Model, Protocol):
+    """``dynamics = "linear"``: a fitted Koopman model z⁺ = A_ z + B_ v (paper eqs. 9-12)."""
+
+    A_: np.ndarray  # (N, N)
+    B_: np.ndarray  # (N, m)
+
+
+@runtime_checkable
 class BilinearModel(LiftedModel, Protocol):
-    """A lifted model whose input also multiplies the lifted state (bilinear Koopman)::
+    """``dynamics = "bilinear"``: the input also multiplies the lifted state::
 
         z⁺ = A_ z + B_ v + Σⱼ (vⱼ − v0_ⱼ) H_[j] z,   v0_ = normalizer_.inputs(0)
 
-    It has every member of :class:`LiftedModel`, but is not one: an MPC that reads only
-    ``A_`` and ``B_`` would silently drop ``H_``. Check for it before treating a model as linear.
+    It has every member of :class:`LiftedModel`, but an MPC that read only ``A_`` and ``B_``
+    would silently drop ``H_``: its declared dynamics, not its members, say which it is.
     """
 
     H_: np.ndarray  # (m, N, N)
@@ -93,22 +138,15 @@ class BilinearModel(LiftedModel, Protocol):
 
 
 @runtime_checkable
-class LinearizableModel(Protocol):
-    """A model in lifted coordinates z = lift(x) whose step is nonlinear but differentiable::
+class LinearizableModel(Model, Protocol):
+    """``dynamics = "nonlinear"``: a step that is nonlinear but differentiable::
 
-        z⁺ = step(z, v),   x_norm = C_ z,   linearised as  z⁺ ≈ A_k z + B_k v + d_k
+        z⁺ = step(z, v),   linearised as  z⁺ ≈ A_k z + B_k v + d_k
 
     what a time-varying MPC needs: ``linearize`` gives, at each point (z̄_k, v̄_k) of a
     trajectory, the Jacobians A_k = ∂step/∂z, B_k = ∂step/∂v and d_k = step(z̄_k, v̄_k) − A_k z̄_k
-    − B_k v̄_k. Units as :class:`LiftedModel`'s (normalized v).
+    − B_k v̄_k. Units as :class:`Model`'s (normalized v).
     """
-
-    C_: np.ndarray  # (n, N)
-    normalizer_: MinMaxNormalizer
-
-    def lift(self, x: np.ndarray) -> np.ndarray:
-        """z = lift(x) for physical states x (..., n) -> (..., N)."""
-        ...
 
     def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         """z⁺ for lifted states z (..., N) under normalized inputs v (..., m)."""
@@ -117,6 +155,35 @@ class LinearizableModel(Protocol):
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A (K, N, N), B (K, N, m), d (K, N)) at the K points z (K, N), v (K, m)."""
         ...
+
+
+_MEMBERS: dict[str, type] = {
+    "linear": LiftedModel,
+    "bilinear": BilinearModel,
+    "nonlinear": LinearizableModel,
+}
+
+
+def dynamics_of(model: object) -> Dynamics | None:
+    """The dynamics ``model`` declares, checked against its members; None when it is no model a
+    controller can read (it declares none, e.g. persistence).
+
+    Raises:
+        ValueError: (one line) when it declares dynamics it does not have the members of.
+    """
+    declared = getattr(type(model), "dynamics", None)
+    if declared is None:
+        return None
+    if declared not in _MEMBERS:
+        raise ValueError(
+            f"{type(model).__name__}.dynamics is {declared!r}; a model declares one of {DYNAMICS}"
+        )
+    if not isinstance(model, _MEMBERS[declared]):
+        raise ValueError(
+            f"{type(model).__name__} declares {declared} dynamics but lacks a member of "
+            f"{_MEMBERS[declared].__name__} (is it fitted?)"
+        )
+    return declared
 
 
 @dataclass(frozen=True)
@@ -167,4 +234,17 @@ class RealTimeIteration(Protocol):
 
     def prepare(self) -> None:
         """Build the next step's problem before its measurement."""
+        ...
+
+
+@runtime_checkable
+class Reference(Protocol):
+    """A tracking target (``conf/reference/``): its label in the metrics, and its states."""
+
+    def label(self, name: str, episodes: Sequence[Episode]) -> str:
+        """The key of its run under ``tracking.references`` (``name`` is its config key)."""
+        ...
+
+    def build(self, dt: float, episodes: Sequence[Episode]) -> np.ndarray:
+        """(T, n) physical states at the plant's step ``dt``, from the test drives."""
         ...

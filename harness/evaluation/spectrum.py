@@ -28,7 +28,14 @@ from harness.core.contracts import INPUT_NAMES, STATE_NAMES, BilinearModel, Lift
 from harness.output import save_figure
 from harness.recorder import Recorder
 
-__all__ = ["TOLERANCE", "plot_spectrum", "record_spectrum", "spectrum", "state_matrices"]
+__all__ = [
+    "TOLERANCE",
+    "plot_spectrum",
+    "record_spectrum",
+    "spectrum",
+    "spectrum_figure",
+    "state_matrices",
+]
 
 TOLERANCE = 1e-6
 
@@ -37,8 +44,9 @@ def state_matrices(model: LiftedModel) -> dict[str, np.ndarray]:
     """The state matrices whose eigenvalues matter, by a label: ``A`` for a lifted-linear model;
     for a bilinear one ``zero input`` (A) and ``steer_wheel_deg=max,pedal=min`` etc. (the
     corners of the normalized input box, where min is v = 0 and max is v = 1)."""
-    if not isinstance(model, BilinearModel):
+    if model.dynamics != "bilinear":
         return {"A": np.asarray(model.A_)}
+    assert isinstance(model, BilinearModel)
     matrices = {"zero input": np.asarray(model.A_)}
     m = model.H_.shape[0]
     names = INPUT_NAMES if m == len(INPUT_NAMES) else tuple(f"v{j}" for j in range(m))
@@ -120,6 +128,12 @@ def record_spectrum(
 
 
 def plot_spectrum(eigenvalues: dict[str, np.ndarray], path: Path, title: str = "") -> Path:
+    """``spectrum.png``: :func:`spectrum_figure`, saved at ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return save_figure(spectrum_figure(eigenvalues, title), path)
+
+
+def spectrum_figure(eigenvalues: dict[str, np.ndarray], title: str = "") -> Figure:
     """The unit circle and every matrix's eigenvalues; beside it, a zoom around λ = 1."""
     fig = Figure(figsize=(10, 4.8))
     whole, zoom = fig.subplots(1, 2)
@@ -149,5 +163,4 @@ def plot_spectrum(eigenvalues: dict[str, np.ndarray], path: Path, title: str = "
     zoom.set_title("around λ = 1 (100 Hz: slow modes lie here)", fontsize=9)
     whole.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return save_figure(fig, path)
+    return fig

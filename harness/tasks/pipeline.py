@@ -43,7 +43,7 @@ import numpy as np
 
 from controllers.config import ControllerFactory, OwnModelFactory
 from harness.core.checks import is_number
-from harness.core.contracts import LiftedModel, LinearizableModel
+from harness.core.contracts import LiftedModel, Model, dynamics_of
 from harness.core.episode import Episode
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
@@ -316,7 +316,7 @@ class Pipeline:
                 by_controller[controller_name] = {"skipped": model}
                 continue
             # The run's learner passed _not_lifted_linear; an own model is linearizable.
-            assert isinstance(model, LiftedModel | LinearizableModel)
+            assert isinstance(model, Model)
             runs: dict[str, Any] = {}
             for name, (label, reference) in targets.items():
                 controller = make_controller(model, plant.dt)
@@ -379,8 +379,9 @@ class Pipeline:
     ) -> dict[str, Any]:
         """``spectrum``: the eigenvalues of a Koopman model's state matrices, unstable modes
         named (harness/evaluation/spectrum.py), and ``spectrum.png``."""
-        if not isinstance(learner, LiftedModel):
+        if dynamics_of(learner) not in ("linear", "bilinear"):
             return {"skipped": f"{self.learner_name} is not a lifted model"}
+        assert isinstance(learner, LiftedModel)
         metrics, eigenvalues = spectrum.spectrum(learner, dt)
         spectrum.record_spectrum(recorder, eigenvalues)
         spectrum.plot_spectrum(eigenvalues, output_dir / "spectrum.png", title=self.learner_name)
@@ -443,11 +444,12 @@ def check_training_data(dataset: Dataset) -> None:
 
 def _not_lifted_linear(learner: Learner) -> str | None:
     """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
-    :class:`~harness.core.contracts.LiftedModel` (a bilinear one is linearised along its plan) or
-    a :class:`~harness.core.contracts.LinearizableModel`."""
-    if not isinstance(learner, LiftedModel | LinearizableModel):
-        return "is not a lifted-linear model (nor bilinear, nor linearizable)"
-    return None
+    :class:`~harness.core.contracts.Model` of declared dynamics (linear, bilinear or nonlinear)."""
+    try:
+        dynamics = dynamics_of(learner)
+    except ValueError as error:  # it declares dynamics it lacks the members of (unfitted)
+        return f"is not a model a controller reads ({error})"
+    return None if dynamics else "is not a model a controller reads (it declares no dynamics)"
 
 
 def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str, Any]:
