@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
@@ -37,7 +37,7 @@ from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVa
 from controllers.linearization import BilinearLinearization
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.core.budget import check_memory
-from harness.core.checks import is_number
+from harness.core.checks import boolean, choice, finite, in_range, integer, positive, require
 from harness.core.contracts import (
     COMPUTE_DELAYS,
     BilinearModel,
@@ -131,51 +131,40 @@ class DEMPCConfig:
     real_time_iteration: bool = True
 
     def __post_init__(self) -> None:
-        _check_types(self)
-        if self.compute_delay not in COMPUTE_DELAYS:
-            raise ValueError(
-                f"controller.compute_delay must be one of {', '.join(COMPUTE_DELAYS)} "
-                f"(got {self.compute_delay!r})"
-            )
-        _check_horizons(self.Np, self.Nc)
-        if not (float(self.sqp_iterations).is_integer() and 1 <= self.sqp_iterations <= 3):
-            raise ValueError(
-                f"controller.sqp_iterations must be 1, 2 or 3 (got {self.sqp_iterations})"
-            )
-        if self.linearization not in LINEARIZATIONS:
-            raise ValueError(
-                f"controller.linearization must be one of {', '.join(LINEARIZATIONS)} "
-                f"(got {self.linearization!r})"
-            )
-        if self.qp_solver not in QP_SOLVERS:
-            raise ValueError(
-                f"controller.qp_solver must be one of {', '.join(QP_SOLVERS)} "
-                f"(got {self.qp_solver!r})"
-            )
-        if self.reference not in REFERENCES:
-            raise ValueError(
-                f"controller.reference must be one of {', '.join(REFERENCES)} "
-                f"(got {self.reference!r})"
-            )
-        if not 0 < self.offset_free_gain <= 1:
-            raise ValueError(
-                f"controller.offset_free_gain must be in (0, 1] (got {self.offset_free_gain})"
-            )
-        _check_qp_size(int(self.Np), int(self.Nc))
+        key = "controller."
+        Np, Nc = integer(key + "Np", self.Np), integer(key + "Nc", self.Nc)
+        require(Nc <= Np, key + "Nc", f"<= controller.Np ({Np})", Nc)
+        require(
+            self.sqp_iterations in (1, 2, 3),
+            key + "sqp_iterations",
+            "1, 2 or 3",
+            self.sqp_iterations,
+        )
+        integer(key + "max_iter", self.max_iter)
+        for flag in ("active_set", "offset_free", "real_time_iteration"):
+            boolean(key + flag, getattr(self, flag))
+        choice(key + "compute_delay", self.compute_delay, COMPUTE_DELAYS)
+        choice(key + "linearization", self.linearization, LINEARIZATIONS)
+        choice(key + "qp_solver", self.qp_solver, QP_SOLVERS)
+        choice(key + "reference", self.reference, REFERENCES)
+        in_range(key + "offset_free_gain", self.offset_free_gain, 0.0, 1.0, open_low=True)
+        for name in (
+            "rho",
+            "steer_wheel_increment_deg",
+            "throttle_increment",
+            "brake_increment_mpa",
+            "dt",
+            "tol",
+        ):
+            positive(key + name, getattr(self, name))
+        for name in ("steer_wheel_min_deg", "steer_wheel_max_deg", "pedal_min", "pedal_max"):
+            finite(key + name, getattr(self, name))
+        _check_qp_size(Np, Nc)
         self.weights()
         self.path_weights()
-        _check_positive(
-            rho=self.rho,
-            steer_wheel_increment_deg=self.steer_wheel_increment_deg,
-            throttle_increment=self.throttle_increment,
-            brake_increment_mpa=self.brake_increment_mpa,
-            dt=self.dt,
-            tol=self.tol,
-            max_iter=self.max_iter,
-        )
         _check_range("steer_wheel", self.steer_wheel_min_deg, self.steer_wheel_max_deg, "_deg")
         _check_range("pedal", self.pedal_min, self.pedal_max, "")
-        _check_horizon_span(int(self.Np), float(self.dt))
+        _check_horizon_span(Np, float(self.dt))
 
     def weights(self) -> tuple[np.ndarray, np.ndarray]:
         """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
@@ -746,24 +735,6 @@ def _check_linearizable(model: LinearizableModel) -> np.ndarray:
     return C
 
 
-def _check_types(config: DEMPCConfig) -> None:
-    """Numbers where numbers belong: a YAML typo (``controller.Np=ten``) names its key."""
-    for spec in fields(config):
-        value = getattr(config, spec.name)
-        if spec.type == "bool" and not isinstance(value, bool):
-            raise ValueError(f"controller.{spec.name} must be true or false (got {value!r})")
-        if spec.type in ("int", "float") and not is_number(value):
-            raise ValueError(f"controller.{spec.name} must be a number (got {value!r})")
-
-
-def _check_horizons(Np: float, Nc: float) -> None:
-    for key, value in (("Np", Np), ("Nc", Nc)):
-        if not float(value).is_integer() or value < 1:
-            raise ValueError(f"controller.{key} must be a positive integer (got {value})")
-    if Nc > Np:
-        raise ValueError(f"controller.Nc ({Nc}) must be <= controller.Np ({Np})")
-
-
 def _check_horizon_span(Np: int, dt: float) -> None:
     """Refuse a horizon longer than ``MAX_HORIZON_S``: its prediction matrices lose all
     precision, then overflow, on a learned model's unstable modes (see ``MAX_HORIZON_S``)."""
@@ -812,12 +783,6 @@ def _weight(key: str, value: Any, size: int) -> np.ndarray:
             f"controller.{key} must be positive definite (smallest eigenvalue {smallest:g})"
         )
     return array
-
-
-def _check_positive(**values: float) -> None:
-    for key, value in values.items():
-        if not np.isfinite(value) or value <= 0:
-            raise ValueError(f"controller.{key} must be > 0 (got {value})")
 
 
 def _check_range(name: str, low: float, high: float, unit: str) -> None:

@@ -20,7 +20,6 @@ includes x"); Deep EDMD with ``lifted_includes_state=false`` is the one exceptio
 from __future__ import annotations
 
 import importlib
-import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -31,7 +30,6 @@ import numpy as np
 import torch
 
 from harness.core import contracts
-from harness.core.checks import is_number
 from harness.core.contracts import STATE_NAMES
 from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.files import write_atomic
@@ -382,38 +380,6 @@ def _first_difference(saved: Any, wanted: Any, key: str = "") -> tuple[str, Any,
     if isinstance(saved, list | tuple) and isinstance(wanted, list | tuple):
         saved, wanted = list(saved), list(wanted)
     return None if saved == wanted else (key, saved, wanted)
-
-
-# -- validation helpers shared by the learners ---------------------------------------------------
-
-
-def check(condition: bool, key: str, requirement: str, value: Any) -> None:
-    """Raise the harness's one-line ``ValueError`` naming the config key when a value is wrong."""
-    if not condition:
-        raise ValueError(f"learner.{key} must be {requirement} (got {value!r})")
-
-
-def check_int(key: str, value: Any, minimum: int) -> int:
-    ok = isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= minimum
-    check(bool(ok), key, f"an integer >= {minimum}", value)
-    return int(value)
-
-
-def check_positive(key: str, value: Any) -> float:
-    check(is_number(value), key, "a number > 0", value)
-    check(math.isfinite(value) and value > 0, key, "> 0", value)
-    return float(value)
-
-
-def check_nonnegative(key: str, value: Any) -> float:
-    check(is_number(value), key, "a number >= 0", value)
-    check(math.isfinite(value) and value >= 0, key, ">= 0", value)
-    return float(value)
-
-
-def check_choice(key: str, value: Any, choices: Sequence[str]) -> str:
-    check(value in choices, key, f"one of {', '.join(choices)}", value)
-    return str(value)
 
 
 def check_episodes(

@@ -43,9 +43,10 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from harness.core.checks import choice
 from harness.core.contracts import Dynamics
 from harness.core.episode import MinMaxNormalizer
-from learners.base import INPUT_DIM, STATE_DIM, Shape, check_choice, check_rollout_args
+from learners.base import INPUT_DIM, STATE_DIM, Shape, check_rollout_args
 from learners.dictionaries import Dictionary
 from learners.edmd import EDMD
 
@@ -172,7 +173,7 @@ class BilinearEDMD(BilinearOperator, EDMD):
         ridge_prior: str = "identity",
     ) -> None:
         super().__init__(dictionary, ridge, include_constant, seed)
-        self.ridge_prior = check_choice("ridge_prior", ridge_prior, RIDGE_PRIORS)
+        self.ridge_prior = choice("learner.ridge_prior", ridge_prior, RIDGE_PRIORS)
         self._hyperparameters["ridge_prior"] = self.ridge_prior
 
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:

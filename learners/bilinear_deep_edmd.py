@@ -39,8 +39,9 @@ from typing import Any, ClassVar, Self
 import numpy as np
 import torch
 
+from harness.core.checks import boolean, choice, non_negative, positive, require
 from harness.core.episode import Episode
-from learners.base import Shape, check, check_choice, check_nonnegative, check_positive
+from learners.base import Shape
 from learners.bilinear import (
     RIDGE_PRIORS,
     BilinearOperator,
@@ -71,8 +72,8 @@ class StabilityPenalty:
     radius: float = 1.0
 
     def __post_init__(self) -> None:
-        check_nonnegative("stability.weight", self.weight)
-        check_positive("stability.radius", self.radius)
+        non_negative("learner.stability.weight", self.weight)
+        positive("learner.stability.radius", self.radius)
 
 
 def stability_penalty(
@@ -165,22 +166,17 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
     ) -> None:
         deep_edmd.setdefault("prediction_output", "linear")
         super().__init__(**deep_edmd)
-        check(
+        require(
             not self.refit_koopman_lstsq,
-            "refit_koopman_lstsq",
+            "learner.refit_koopman_lstsq",
             "false (bilinear_refit: lstsq refits the bilinear operator)",
             True,
         )
-        check(
-            isinstance(bilinear_training, bool),
-            "bilinear_training",
-            "true or false",
-            bilinear_training,
-        )
+        boolean("learner.bilinear_training", bilinear_training)
         self.bilinear_training = bilinear_training
-        self.bilinear_refit = check_choice("bilinear_refit", bilinear_refit, REFITS)
-        self.bilinear_ridge = check_nonnegative("bilinear_ridge", bilinear_ridge)
-        self.ridge_prior = check_choice("ridge_prior", ridge_prior, RIDGE_PRIORS)
+        self.bilinear_refit = choice("learner.bilinear_refit", bilinear_refit, REFITS)
+        self.bilinear_ridge = non_negative("learner.bilinear_ridge", bilinear_ridge)
+        self.ridge_prior = choice("learner.ridge_prior", ridge_prior, RIDGE_PRIORS)
         self.stability = block(StabilityPenalty, stability, "stability")
         self._hyperparameters.update(
             bilinear_training=self.bilinear_training,

@@ -36,16 +36,9 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 import torch
 
+from harness.core.checks import boolean, choice, integer, non_negative
 from harness.core.episode import Episode
-from learners.base import (
-    Dim,
-    KoopmanLearner,
-    Shape,
-    check,
-    check_choice,
-    check_int,
-    check_nonnegative,
-)
+from learners.base import Dim, KoopmanLearner, Shape
 from learners.edmd import linear_rollout
 from learners.linalg import ridge_lstsq, row_chunks
 from learners.nets import Dense, LayerSpec, mlp_apply, mlp_backward, mlp_forward, mlp_specs
@@ -71,7 +64,7 @@ class LossWeights:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            check_nonnegative(f"alpha.{f.name}", getattr(self, f.name))
+            non_negative(f"learner.alpha.{f.name}", getattr(self, f.name))
 
     def data_terms(self) -> dict[str, float]:
         return {"ox": self.ox, "xx": self.xx, "xo": self.xo, "inf": self.inf}
@@ -400,19 +393,14 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         training: TrainingConfig | Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__(horizon=horizon, random_layer=random_layer, training=training)
-        self.lifted_dim = check_int("lifted_dim", lifted_dim, 1)
-        self.encoder_hidden = [check_int("encoder_hidden", w, 1) for w in encoder_hidden]
-        self.decoder_hidden = [check_int("decoder_hidden", w, 1) for w in decoder_hidden]
-        check(
-            isinstance(lifted_includes_state, bool),
-            "lifted_includes_state",
-            "true or false",
-            lifted_includes_state,
-        )
+        self.lifted_dim = integer("learner.lifted_dim", lifted_dim, 1)
+        self.encoder_hidden = [integer("learner.encoder_hidden", w, 1) for w in encoder_hidden]
+        self.decoder_hidden = [integer("learner.decoder_hidden", w, 1) for w in decoder_hidden]
+        boolean("learner.lifted_includes_state", lifted_includes_state)
         self.lifted_includes_state = lifted_includes_state
         self.alpha = block(LossWeights, alpha, "alpha")
-        self.prediction_output = check_choice(
-            "prediction_output", prediction_output, ("decoder", "linear")
+        self.prediction_output = choice(
+            "learner.prediction_output", prediction_output, ("decoder", "linear")
         )
         self.refit_koopman_lstsq = bool(refit_koopman_lstsq)
         self.loss_scales = check_loss_scales(loss_scales)

@@ -25,7 +25,8 @@ from typing import Any, Self
 
 import numpy as np
 
-from learners.base import Dim, Shape, check_choice, check_int, check_positive
+from harness.core.checks import choice, integer, positive
+from learners.base import Dim, Shape
 
 __all__ = ["ACTIVATIONS", "Dictionary", "RandomFeatures", "ThinPlateRBF", "dictionary_from"]
 
@@ -138,8 +139,8 @@ class ThinPlateRBF(Dictionary):
     center_draw: str = "normal"
 
     def __post_init__(self) -> None:
-        self.num_centers = check_int("dictionary.num_centers", self.num_centers, 0)
-        self.center_draw = check_choice("dictionary.center_draw", self.center_draw, CENTER_DRAWS)
+        self.num_centers = integer("learner.dictionary.num_centers", self.num_centers, 0)
+        self.center_draw = choice("learner.dictionary.center_draw", self.center_draw, CENTER_DRAWS)
 
     @property
     def size(self) -> tuple[str, int]:
@@ -206,11 +207,11 @@ class RandomFeatures(Dictionary):
     bias_scale: float = 2.0
 
     def __post_init__(self) -> None:
-        key = "dictionary."
-        self.num_features = check_int(key + "num_features", self.num_features, 1)
-        self.activation = check_choice(key + "activation", self.activation, tuple(ACTIVATIONS))
-        self.weight_scale = check_positive(key + "weight_scale", self.weight_scale)
-        self.bias_scale = check_positive(key + "bias_scale", self.bias_scale)
+        key = "learner.dictionary."
+        self.num_features = integer(key + "num_features", self.num_features, 1)
+        self.activation = choice(key + "activation", self.activation, tuple(ACTIVATIONS))
+        self.weight_scale = positive(key + "weight_scale", self.weight_scale)
+        self.bias_scale = positive(key + "bias_scale", self.bias_scale)
 
     @property
     def size(self) -> tuple[str, int]:

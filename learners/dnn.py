@@ -29,9 +29,10 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from harness.core.checks import integer, non_negative
 from harness.core.contracts import Dynamics
 from harness.core.episode import Episode
-from learners.base import Shape, check_int, check_nonnegative
+from learners.base import Shape
 from learners.nets import Dense, LayerSpec, NumpyMLP, mlp_apply, mlp_forward, mlp_specs
 from learners.trained import TrainedLearner, check_loss_scales
 from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
@@ -50,7 +51,7 @@ class DNNLossWeights:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            check_nonnegative(f"beta.{f.name}", getattr(self, f.name))
+            non_negative(f"learner.beta.{f.name}", getattr(self, f.name))
 
 
 def dnn_loss_terms(
@@ -258,7 +259,7 @@ class DNN(TrainedLearner):
         training: TrainingConfig | Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__(horizon=horizon, random_layer=random_layer, training=training)
-        self.hidden = [check_int("hidden", w, 1) for w in hidden]
+        self.hidden = [integer("learner.hidden", w, 1) for w in hidden]
         if not self.hidden:
             raise ValueError("learner.hidden must list at least one width (got [])")
         self.beta = block(DNNLossWeights, beta, "beta")

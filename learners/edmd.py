@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from harness.core.budget import check_memory
+from harness.core.checks import integer, non_negative
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
@@ -30,8 +31,6 @@ from learners.base import (
     KoopmanLearner,
     Shape,
     check_fit_data,
-    check_int,
-    check_nonnegative,
     check_rollout_args,
 )
 from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF, dictionary_from
@@ -75,9 +74,9 @@ class EDMD(KoopmanLearner):
         seed: int = 0,
     ) -> None:
         self.dictionary = dictionary_from(dictionary)
-        self.ridge = check_nonnegative("ridge", ridge)
+        self.ridge = non_negative("learner.ridge", ridge)
         self.include_constant = bool(include_constant)
-        self.seed = check_int("seed", seed, 0)
+        self.seed = integer("learner.seed", seed, 0)
         self._hyperparameters: dict[str, Any] = {
             "dictionary": self.dictionary.hyperparameters,
             "ridge": self.ridge,

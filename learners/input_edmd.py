@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from harness.core.budget import check_memory
+from harness.core.checks import integer, is_number, non_negative, require
 from harness.core.contracts import Dynamics
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
@@ -57,12 +58,8 @@ from learners.base import (
     Dim,
     Learner,
     Shape,
-    check,
     check_fit_data,
-    check_int,
-    check_nonnegative,
     check_rollout_args,
-    is_number,
 )
 from learners.dictionaries import Dictionary, ThinPlateRBF, dictionary_from
 from learners.linalg import Triangle, row_chunks
@@ -112,11 +109,11 @@ class InputEDMD(Learner):
         )
         self.ridges = _ridges(ridge)
         self.include_constant = bool(include_constant)
-        self.seed = check_int("seed", seed, 0)
+        self.seed = integer("learner.seed", seed, 0)
         self.margin = (
             None
             if observable_margin is None
-            else check_nonnegative("observable_margin", observable_margin)
+            else non_negative("learner.observable_margin", observable_margin)
         )
         self._hyperparameters: dict[str, Any] = {
             "dictionary": self.dictionary.hyperparameters,
@@ -323,7 +320,7 @@ def _ridges(ridge: Any) -> list[float]:
     wanted = "a number >= 0 or a non-empty list of them"
     values = [ridge] if is_number(ridge) else ridge
     if isinstance(values, str | bytes) or not isinstance(values, Sequence) or not values:
-        check(False, "ridge", wanted, ridge)
+        require(False, "learner.ridge", wanted, ridge)
     for value in values:
-        check(is_number(value), "ridge", wanted, ridge)
-    return [check_nonnegative("ridge", value) for value in values]
+        require(is_number(value), "learner.ridge", wanted, ridge)
+    return [non_negative("learner.ridge", value) for value in values]

@@ -54,9 +54,10 @@ import numpy as np
 import torch
 from scipy.optimize import minimize_scalar
 
+from harness.core.checks import positive
 from harness.core.contracts import Dynamics
 from harness.core.episode import SEDAN_INPUTS, Episode, MinMaxNormalizer, input_features
-from learners.base import Learner, Shape, check_fit_data, check_positive, check_rollout_args
+from learners.base import Learner, Shape, check_fit_data, check_rollout_args
 
 __all__ = ["SingleTrack", "coefficient_names", "form_of"]
 
@@ -125,11 +126,11 @@ class SingleTrack(Learner):
                 "learner.cg_to_front_m and learner.cg_to_rear_m must both be given (measured) "
                 "or both be null (identified from the data)"
             )
-        self.a = None if cg_to_front_m is None else check_positive("cg_to_front_m", cg_to_front_m)
-        self.b = None if cg_to_rear_m is None else check_positive("cg_to_rear_m", cg_to_rear_m)
-        self.mass_kg = check_positive("mass_kg", mass_kg)
-        self.min_speed = check_positive("min_speed_mps", min_speed_mps)
-        self.max_lateral_accel = check_positive("max_lateral_accel_mps2", max_lateral_accel_mps2)
+        self.a = None if cg_to_front_m is None else positive("learner.cg_to_front_m", cg_to_front_m)
+        self.b = None if cg_to_rear_m is None else positive("learner.cg_to_rear_m", cg_to_rear_m)
+        self.mass_kg = positive("learner.mass_kg", mass_kg)
+        self.min_speed = positive("learner.min_speed_mps", min_speed_mps)
+        self.max_lateral_accel = positive("learner.max_lateral_accel_mps2", max_lateral_accel_mps2)
         self._hyperparameters: dict[str, Any] = {
             "cg_to_front_m": self.a,
             "cg_to_rear_m": self.b,

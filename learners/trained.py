@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from harness.core.budget import check_memory
+from harness.core.checks import integer, positive
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners import training as loop
 from learners.base import (
@@ -20,8 +21,6 @@ from learners.base import (
     Learner,
     Shape,
     check_fit_data,
-    check_int,
-    check_positive,
     check_rollout_args,
 )
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
@@ -41,7 +40,7 @@ def check_loss_scales(scales: Sequence[float] | None) -> tuple[float, ...] | Non
             f"learner.loss_scales must be null or a list of positive numbers, one per state "
             f"(got {scales!r})"
         )
-    return tuple(check_positive("loss_scales", value) for value in scales)
+    return tuple(positive("learner.loss_scales", value) for value in scales)
 
 
 def check_per_state(key: str, scales: Sequence[float], n: int) -> None:
@@ -109,7 +108,7 @@ class TrainedLearner(Learner):
         random_layer: RandomLayerConfig | Mapping[str, Any] | None,
         training: TrainingConfig | Mapping[str, Any] | None,
     ) -> None:
-        self.horizon = check_int("horizon", horizon, 1)
+        self.horizon = integer("learner.horizon", horizon, 1)
         self.random_layer = block(RandomLayerConfig, random_layer, "random_layer")
         self.training = block(TrainingConfig, training, "training")
         self.checkpoint_dir = None

@@ -49,8 +49,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from harness.core.checks import boolean, choice, integer, non_negative, positive, require
 from harness.core.files import write_atomic
-from learners.base import check, check_choice, check_int, check_nonnegative, check_positive
 from learners.nets import FlatParameters
 from learners.windows import WindowData
 
@@ -115,53 +115,53 @@ class TrainingConfig:
     initial_state_noise: float = 0.0
 
     def __post_init__(self) -> None:
-        key = "training."
-        check_int(key + "batch_size", self.batch_size, 1)
-        check_positive(key + "lr", self.lr)
+        key = "learner.training."
+        integer(key + "batch_size", self.batch_size, 1)
+        positive(key + "lr", self.lr)
         if self.max_steps is not None:
-            check_int(key + "max_steps", self.max_steps, 1)
+            integer(key + "max_steps", self.max_steps, 1)
         if self.max_epochs is not None:
-            check_int(key + "max_epochs", self.max_epochs, 1)
-        check(
+            integer(key + "max_epochs", self.max_epochs, 1)
+        require(
             self.max_steps is not None or self.max_epochs is not None,
             key + "max_steps",
             "set when training.max_epochs is null",
             self.max_steps,
         )
-        check_int(key + "patience", self.patience, 1)
-        check_int(key + "eval_every_steps", self.eval_every_steps, 1)
-        check_int(key + "checkpoint_every_steps", self.checkpoint_every_steps, 1)
-        check_int(key + "seed", self.seed, 0)
+        integer(key + "patience", self.patience, 1)
+        integer(key + "eval_every_steps", self.eval_every_steps, 1)
+        integer(key + "checkpoint_every_steps", self.checkpoint_every_steps, 1)
+        integer(key + "seed", self.seed, 0)
         if self.num_threads is not None:
-            check_int(key + "num_threads", self.num_threads, 1)
-        check(isinstance(self.progress, bool), key + "progress", "true or false", self.progress)
-        check_choice(key + "selection", self.selection, SELECTIONS)
+            integer(key + "num_threads", self.num_threads, 1)
+        boolean(key + "progress", self.progress)
+        choice(key + "selection", self.selection, SELECTIONS)
         scales = self.rollout_scales
-        check(
+        require(
             isinstance(scales, Sequence) and not isinstance(scales, str) and len(scales) > 0,
             key + "rollout_scales",
             "a list of positive numbers, one per state",
             scales,
         )
         for scale in scales:
-            check_positive(key + "rollout_scales", scale)
+            positive(key + "rollout_scales", scale)
         object.__setattr__(self, "rollout_scales", tuple(float(x) for x in scales))
-        check_choice(key + "lr_schedule", self.lr_schedule, LR_SCHEDULES)
-        check_int(key + "warmup_steps", self.warmup_steps, 0)
-        check_nonnegative(key + "lr_final", self.lr_final)
-        check(
+        choice(key + "lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        integer(key + "warmup_steps", self.warmup_steps, 0)
+        non_negative(key + "lr_final", self.lr_final)
+        require(
             self.lr_schedule == "constant" or self.max_steps is not None,
             key + "max_steps",
             "set when training.lr_schedule is cosine (the decay ends there)",
             self.max_steps,
         )
         if self.grad_clip_norm is not None:
-            check_positive(key + "grad_clip_norm", self.grad_clip_norm)
-        check_nonnegative(key + "initial_state_noise", self.initial_state_noise)
+            positive(key + "grad_clip_norm", self.grad_clip_norm)
+        non_negative(key + "initial_state_noise", self.initial_state_noise)
         if self.curriculum is not None:
             phases = []
             for phase in self.curriculum:
-                check(
+                require(
                     isinstance(phase, Sequence) and not isinstance(phase, str) and len(phase) == 2,
                     key + "curriculum",
                     "a list of [p, steps] pairs",
@@ -169,8 +169,8 @@ class TrainingConfig:
                 )
                 phases.append(
                     (
-                        check_int(key + "curriculum p", phase[0], 1),
-                        check_int(key + "curriculum steps", phase[1], 1),
+                        integer(key + "curriculum p", phase[0], 1),
+                        integer(key + "curriculum steps", phase[1], 1),
                     )
                 )
             object.__setattr__(self, "curriculum", tuple(phases))
@@ -218,8 +218,8 @@ class RandomLayerConfig:
     std: float = 0.1
 
     def __post_init__(self) -> None:
-        check(isinstance(self.enabled, bool), "random_layer.enabled", "true or false", self.enabled)
-        check_nonnegative("random_layer.std", self.std)
+        boolean("learner.random_layer.enabled", self.enabled)
+        non_negative("learner.random_layer.std", self.std)
 
 
 def block(cls: type[_Block], value: _Block | Mapping[str, Any] | None, key: str) -> _Block:

@@ -401,7 +401,7 @@ def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
 @pytest.mark.parametrize(
     ("settings", "message"),
     [
-        ({"Np": 10, "Nc": 60}, "controller.Nc (60) must be <= controller.Np (10)"),
+        ({"Np": 10, "Nc": 60}, "controller.Nc must be <= controller.Np (10) (got 60)"),
         ({"Q": [1.0, -1.0, 1.0]}, "controller.Q must be positive definite"),
         ({"R": 0.0}, "controller.R must be positive definite"),
         ({"Q": [[1, 2, 0], [0, 1, 0], [0, 0, 1]]}, "controller.Q must be symmetric"),
@@ -409,9 +409,9 @@ def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
         ({"pedal_min": 0.1, "pedal_max": -1.0}, "controller.pedal_min (0.1) must be <"),
         ({"steer_wheel_min_deg": 10, "steer_wheel_max_deg": -10}, "controller.steer_wheel_min"),
         ({"steer_wheel_increment_deg": -1}, "controller.steer_wheel_increment_deg must be > 0"),
-        ({"Nc": 0}, "controller.Nc must be a positive integer"),
-        ({"Np": 7.5}, "controller.Np must be a positive integer"),
-        ({"Np": "ten"}, "controller.Np must be a number"),
+        ({"Nc": 0}, "controller.Nc must be an integer >= 1 (got 0)"),
+        ({"Np": 7.5}, "controller.Np must be an integer >= 1 (got 7.5)"),
+        ({"Np": "ten"}, "controller.Np must be an integer >= 1 (got 'ten')"),
         ({"Q": [1.0, 1.0]}, "controller.Q must be a scalar, 3 diagonal entries or a 3x3"),
         ({"R": [[1.0, 0.0, 0.0]]}, "controller.R must be a scalar, 2 diagonal entries or a 2x2"),
         ({"dt": 0.0}, "controller.dt must be > 0"),
@@ -446,10 +446,16 @@ def test_the_longest_horizon_allowed_stays_well_posed_on_a_fast_unstable_mode() 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["controller.Np=3", "controller.Nc=7"], "controller.Nc (7) must be <= controller.Np (3)"),
+        (
+            ["controller.Np=3", "controller.Nc=7"],
+            "controller.Nc must be <= controller.Np (3) (got 7)",
+        ),
         (["controller.Q=-5"], "controller.Q must be positive definite"),
         (["controller.Q=[1,2]"], "controller.Q must be a scalar, 3 diagonal entries"),
-        (["controller=de_mpc_long", "controller.Np=40"], "controller.Nc (50) must be <="),
+        (
+            ["controller=de_mpc_long", "controller.Np=40"],
+            "controller.Nc must be <= controller.Np (40) (got 50)",
+        ),
         (["controller.qp_solver=quadprog"], "controller.qp_solver must be one of daqp"),
     ],
 )

@@ -71,11 +71,14 @@ def build_as_the_app(*overrides: str) -> None:
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["controller.Np=3", "controller.Nc=7"], "controller.Nc (7) must be <= controller.Np (3)"),
+        (
+            ["controller.Np=3", "controller.Nc=7"],
+            "controller.Nc must be <= controller.Np (3) (got 7)",
+        ),
         (["controller.Q=-5"], "controller.Q must be positive definite"),
         (
             ["experiment=paper", "task.extra_controllers.de_mpc_long.Np=0"],
-            "task.extra_controllers.de_mpc_long.Np must be a positive integer (got 0)",
+            "task.extra_controllers.de_mpc_long.Np must be an integer >= 1 (got 0)",
         ),
         (
             ["task.references.double_lane_change.speed_mps=-1"],

@@ -267,8 +267,10 @@ def test_absurd_sizes_are_refused_in_one_line_naming_the_key_before_any_work() -
     split = {"train": 10**6 - 2, "validation": 1, "test": 1}
     with pytest.raises(ValueError, match=r"data\.max_steps \(4000\) x data\.episodes \(1000000\)"):
         DataConfig(episodes=10**6, split=split)
-    with pytest.raises(ValueError, match=r"data\.max_steps must be an integer \(got 1"):
-        DataConfig(max_steps=1e13)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"data\.max_steps must be an integer >= 10 \(got 10\.5"):
+        DataConfig(max_steps=10.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^data\.max_steps \(10000000000000\) x data\.episodes"):
+        DataConfig(max_steps=1e13)  # type: ignore[arg-type]  # a whole float (1e13 typed) is one
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides=["task=collect", "data.max_steps=10000000000000"])
     with pytest.raises(ValueError, match=r"data\.max_steps") as info:

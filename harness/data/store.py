@@ -66,6 +66,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from harness.core.checks import integer
 from harness.core.contracts import Plant
 from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
 from harness.core.files import write_atomic, write_text_atomic
@@ -117,22 +118,10 @@ class DataConfig:
     record_every: int = 1  # decimation of the recording only
 
     def __post_init__(self) -> None:
-        integers = {
-            "episodes": self.episodes,
-            "min_steps": self.min_steps,
-            "max_steps": self.max_steps,
-            "seed": self.seed,
-            "workers": self.workers,
-            "record_every": self.record_every,
-        }
-        for key, value in integers.items():
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"data.{key} must be an integer (got {value!r})")
-        if self.seed < 0:
-            raise ValueError(f"data.seed must be >= 0 (got {self.seed})")
-        if self.episodes < 3:
-            raise ValueError(f"data.episodes must be >= 3 (got {self.episodes})")
-        if not 10 <= self.min_steps <= self.max_steps:
+        minimums = {"episodes": 3, "min_steps": 10, "max_steps": 10, "seed": 0}
+        for key, minimum in {**minimums, "workers": 1, "record_every": 1}.items():
+            setattr(self, key, integer(f"data.{key}", getattr(self, key), minimum))
+        if not self.min_steps <= self.max_steps:
             raise ValueError(
                 f"data.min_steps ({self.min_steps}) must be >= 10 and <= data.max_steps "
                 f"({self.max_steps})"
@@ -153,8 +142,6 @@ class DataConfig:
                 f"data.start_speed_mps must be [low, high] with 0 <= low <= high <= "
                 f"data.driver.max_speed_mps ({self.driver.max_speed_mps}), got {list(speeds)}"
             )
-        if self.workers < 1 or self.record_every < 1:
-            raise ValueError("data.workers and data.record_every must be >= 1")
         total = self.episodes * self.max_steps
         if total > MAX_TOTAL_STEPS:
             raise ValueError(

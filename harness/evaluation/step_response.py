@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from harness.core.checks import choice, positive
 from harness.core.contracts import INPUT_NAMES, STATE_NAMES, Plant
 from harness.output import save_arrays, save_figure
 from harness.plant.rollout import SpeedHold
@@ -62,12 +63,9 @@ class StepCase:
     output: str
 
     def __post_init__(self) -> None:
-        if self.input_name not in INPUT_NAMES:
-            raise ValueError(f"step input must be one of {INPUT_NAMES} (got {self.input_name!r})")
-        if self.output not in STATE_NAMES:
-            raise ValueError(f"step output must be one of {STATE_NAMES} (got {self.output!r})")
-        if not self.speed_mps > 0:
-            raise ValueError(f"step speed must be > 0 (got {self.speed_mps})")
+        choice("step input", self.input_name, INPUT_NAMES)
+        choice("step output", self.output, STATE_NAMES)
+        positive("step speed", self.speed_mps)
 
     @property
     def name(self) -> str:

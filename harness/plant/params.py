@@ -14,10 +14,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-
-def show(value: float) -> str:
-    """A number as a person typed it: ``-1``, not the ``-1.0`` a float schema turned it into."""
-    return str(int(value)) if float(value).is_integer() else repr(float(value))
+from harness.core import checks
+from harness.core.checks import in_range, require
 
 
 def check_ranges(
@@ -31,14 +29,12 @@ def check_ranges(
     for f in dataclasses.fields(part):
         value = getattr(part, f.name)
         for number in value if isinstance(value, tuple) else (value,):
-            if isinstance(number, (int, float)) and not math.isfinite(number):
-                raise ValueError(f"{prefix}.{f.name} must be finite (got {value})")
+            if isinstance(number, (int, float)):
+                require(math.isfinite(number), f"{prefix}.{f.name}", "finite", value)
     for name in positive:
-        if not getattr(part, name) > 0:
-            raise ValueError(f"{prefix}.{name} must be > 0 (got {show(getattr(part, name))})")
+        checks.positive(f"{prefix}.{name}", getattr(part, name))
     for name in non_negative:
-        if not getattr(part, name) >= 0:
-            raise ValueError(f"{prefix}.{name} must be >= 0 (got {show(getattr(part, name))})")
+        checks.non_negative(f"{prefix}.{name}", getattr(part, name))
 
 
 @dataclass
@@ -102,15 +98,8 @@ class TireParams:
         )
         for name in ("curvature_x", "curvature_y"):
             value = getattr(self, name)
-            if not value < 1:
-                raise ValueError(
-                    f"plant.tire.{name} must be < 1 for a Magic-Formula curve (got {show(value)})"
-                )
-        if not self.slip_limiter_gain <= 1:
-            raise ValueError(
-                "plant.tire.slip_limiter_gain must be in (0, 1] "
-                f"(got {show(self.slip_limiter_gain)})"
-            )
+            require(value < 1, f"plant.tire.{name}", "< 1 for a Magic-Formula curve", value)
+        in_range("plant.tire.slip_limiter_gain", self.slip_limiter_gain, 0.0, 1.0, open_low=True)
 
 
 @dataclass
@@ -158,10 +147,7 @@ class SteeringParams:
             positive=("steering_ratio", "servo_stiffness_nm_per_rad"),
             non_negative=("servo_damping_nm_s_per_rad",),
         )
-        if not 0 <= self.ackermann <= 1:
-            raise ValueError(
-                f"plant.steering.ackermann must be in [0, 1] (got {show(self.ackermann)})"
-            )
+        in_range("plant.steering.ackermann", self.ackermann, 0.0, 1.0)
 
 
 @dataclass

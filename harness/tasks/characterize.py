@@ -25,13 +25,14 @@ Metrics (SI unless the key says otherwise) go under ``characterize`` in ``metric
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from harness.core.checks import positive, require, shown
 from harness.output import save_figure
 from harness.plant import Sedan
 from harness.plant.rollout import SpeedHold, Trajectory, simulate
@@ -80,21 +81,30 @@ class Characterize:
     steady_state_hold_s: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("circle_speed_mps", "steer_ramp_deg_per_s", "low_speed_mps"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"task.{name} must be > 0 (got {getattr(self, name)})")
-        self.steady_state_speeds_mps = tuple(float(v) for v in self.steady_state_speeds_mps)
-        self.steady_state_steer_deg = tuple(float(a) for a in self.steady_state_steer_deg)
-        if not self.steady_state_speeds_mps or min(self.steady_state_speeds_mps) <= 0:
-            raise ValueError("task.steady_state_speeds_mps must be a non-empty list of speeds > 0")
-        if len(self.steady_state_steer_deg) < 3 or min(self.steady_state_steer_deg) <= 0:
-            raise ValueError("task.steady_state_steer_deg needs >= 3 steering angles > 0")
-        if not self.steady_state_hold_s >= 2.0:
-            raise ValueError(
-                f"task.steady_state_hold_s must be >= 2 s (got {self.steady_state_hold_s})"
-            )
-        if not 0 < self.coast_end_speed_mps < self.coast_start_speed_mps:
-            raise ValueError("task.coast_end_speed_mps must be in (0, task.coast_start_speed_mps)")
+        for f in fields(self):
+            if f.type == "float":
+                positive(f"task.{f.name}", getattr(self, f.name))
+        speeds = tuple(
+            positive("task.steady_state_speeds_mps", v) for v in self.steady_state_speeds_mps
+        )
+        steers = tuple(
+            positive("task.steady_state_steer_deg", a) for a in self.steady_state_steer_deg
+        )
+        require(len(speeds) >= 1, "task.steady_state_speeds_mps", "a non-empty list", speeds)
+        require(len(steers) >= 3, "task.steady_state_steer_deg", ">= 3 steering angles", steers)
+        self.steady_state_speeds_mps, self.steady_state_steer_deg = speeds, steers
+        require(
+            self.steady_state_hold_s >= 2.0,
+            "task.steady_state_hold_s",
+            ">= 2 s",
+            self.steady_state_hold_s,
+        )
+        require(
+            self.coast_end_speed_mps < self.coast_start_speed_mps,
+            "task.coast_end_speed_mps",
+            f"< task.coast_start_speed_mps ({shown(self.coast_start_speed_mps)})",
+            self.coast_end_speed_mps,
+        )
 
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, dict]:
         runs: dict[str, Trajectory] = {}

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from controllers.config import ControllerFactory, OwnModelFactory
-from harness.core.checks import is_number
+from harness.core.checks import integer, is_number
 from harness.core.contracts import LiftedModel, Model, dynamics_of
 from harness.core.episode import Episode
 from harness.data.collect import data_config, prepare, reference_speeds
@@ -104,7 +104,7 @@ class Pipeline:
         self.loaded = self._load(model_path, learner, learner_name)
         if self.loaded is None and isinstance(self.data, DataConfig):
             learner.check_size(self.data.max_steps)  # logs: once they are read, before the fit
-        _check_count("task.prediction_window_steps", prediction_window_steps)
+        integer("task.prediction_window_steps", prediction_window_steps)
         windows = (
             [prediction_window_s]
             if isinstance(prediction_window_s, int | float)
@@ -123,7 +123,7 @@ class Pipeline:
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
         self.window_steps, self.windows_s = int(prediction_window_steps), windows
         self.references = references
-        _check_count("task.robustness_repeats", robustness_repeats)
+        integer("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
 
     @staticmethod
@@ -421,12 +421,6 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
-
-
-def _check_count(key: str, value: float) -> None:
-    """A whole number >= 1 (a float from the command line, ``1e3``, may say one)."""
-    if not (math.isfinite(value) and value >= 1 and float(value).is_integer()):
-        raise ValueError(f"{key} must be a whole number >= 1 (got {value})")
 
 
 def check_training_data(dataset: Dataset) -> None:
