@@ -89,37 +89,46 @@ class DEMPCConfig:
     pedal >= 0 throttle, pedal < 0 brake in -MPa; increments are per control step.
     """
 
-    Np: int = 10
-    Nc: int = 7
-    # Scalar, n diagonal entries or n x n (OmegaConf has no float | list). vy at 1 % (ours; the
-    # paper's is 1000·I): a reference's vy is the steady-state sideslip, opposite to r at speed,
-    # but within a 0.1 s horizon steering moves vy with r, so at 1000·I the QP trades the two
-    # errors and barely steers (docs/control.md, "The baseline that did not steer").
+    Np: int = 10  # prediction horizon, steps of dt; Np·dt <= MAX_HORIZON_S
+    Nc: int = 7  # control horizon; increments are zero from Nc to Np
+    # Normalized state-error weight (vx, vy, r): scalar, n diagonal entries or n x n (OmegaConf
+    # has no float | list). vy at 1 % (ours; the paper's is 1000·I): a reference's vy is the
+    # steady-state sideslip, opposite to r at speed, but within a 0.1 s horizon steering moves vy
+    # with r, so at 1000·I the QP trades the two errors and barely steers (docs/control.md, "The
+    # baseline that did not steer").
     Q: Any = (1000.0, 10.0, 1000.0)
-    R: Any = 5.0  # scalar, m diagonal entries or m x m
-    rho: float = 10.0
+    R: Any = 5.0  # normalized input-increment weight: scalar, m diagonal entries or m x m
+    rho: float = 10.0  # slack weight; the slack is relative to each increment limit
     steer_wheel_min_deg: float = -STEER_WHEEL_LIMIT_DEG
     steer_wheel_max_deg: float = STEER_WHEEL_LIMIT_DEG
-    pedal_min: float = -BRAKE_MAX_MPA
-    pedal_max: float = THROTTLE_MAX
-    steer_wheel_increment_deg: float = 2.25
-    throttle_increment: float = 0.004
-    brake_increment_mpa: float = 0.18
-    dt: float = 0.01
-    tol: float = 1e-6
-    max_iter: int = 100
-    active_set: bool = True
+    pedal_min: float = -BRAKE_MAX_MPA  # pedal < 0 is brake pressure in -MPa
+    pedal_max: float = THROTTLE_MAX  # pedal >= 0 is throttle
+    steer_wheel_increment_deg: float = 2.25  # per step
+    throttle_increment: float = 0.004  # per step
+    brake_increment_mpa: float = 0.18  # per step
+    dt: float = 0.01  # control period = the model's sampling period = the plant's (s)
+    tol: float = 1e-6  # feasibility and optimality tolerance of every solve
+    max_iter: int = 100  # PIQP iterations: the time limit of one solve
+    active_set: bool = True  # hot-start from the last step's active set before PIQP
     # The active-set solver tried before PIQP: DAQP (the bounded worst case: docs/control.md,
     # "DAQP") or ours (controllers/condensed_qp.py).
     qp_solver: str = "daqp"
-    sqp_iterations: int = 1
+    sqp_iterations: int = 1  # time-varying models (bilinear, nonlinear): linearisations a step
+    # Time-varying models (LINEARIZATIONS): predicted (acados's RTI shift: at the states the last
+    # step's QP predicted, lifted, no simulation; the same lane change as plan to 1 %,
+    # docs/control.md), plan (along the previous plan, rolled out: Np model steps in sequence),
+    # or frozen at the current point.
     linearization: str = "predicted"
+    # What the cost follows: the reference's states (the paper's), or ``path``: on a course, the
+    # lateral and heading error to its centre line and the yaw rate its curvature asks for where
+    # the car is (controllers/path_following.py); runs without a course track states either way.
     reference: str = "states"
     # reference=path: diagonal weights on (vx, vy, yaw rate) errors, normalized as Q's, then on
     # the lateral error (per m²) and heading error (per rad²) to the path.
     Q_path: Any = (1000.0, 0.0, 300.0, 30.0, 300.0)
     # Offset-free tracking: a constant disturbance w in the model's step, z⁺ = f(z, v) + w,
-    # estimated from each step's one-step prediction error, w += gain · (z − ẑ).
+    # estimated from each step's one-step prediction error, w += gain · (z − ẑ); gain in (0, 1],
+    # 1 holds the last step's error (the best of 0.02-1 at 10/7, docs/control.md).
     offset_free: bool = False
     offset_free_gain: float = 1.0
     # The clock in the loop (COMPUTE_DELAYS): none, or one_step, each input applied one control
@@ -127,7 +136,8 @@ class DEMPCConfig:
     compute_delay: str = "none"
     # The real-time iteration (acados's RTI): prepare() builds the next step's linearisation,
     # prediction matrices, Hessian and factor before its measurement, along the state the model
-    # predicts; act() is then the feedback phase. False: act() does it all from the measurement.
+    # predicts; act() is then the feedback phase (tracking.solve_time_ms). False: act() does it
+    # all from the measurement.
     real_time_iteration: bool = True
 
     def __post_init__(self) -> None:

@@ -26,10 +26,12 @@ from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from controllers import BicycleMPCConfig, DEMPCConfig
 from harness.core.checks import is_number
 from harness.data.logs import LogsConfig
 from harness.data.store import DataConfig
 from harness.plant.params import SedanParams
+from harness.tasks.characterize import Characterize
 
 T = TypeVar("T")
 
@@ -46,12 +48,46 @@ class SedanConfig(SedanParams):
     _convert_: str = "object"
 
 
+def schema_of(settings: type, convert: str = "all") -> type:
+    """A settings dataclass as a Hydra schema: the same fields and defaults, and ``_target_``
+    naming the class, so its YAML files list only what differs from the defaults and every key
+    can still be overridden (``controller.Np=60``). Not frozen, as Hydra merges overrides into
+    it; composing it checks the types, building it runs the class's own ``__post_init__``."""
+    hints = typing.get_type_hints(settings)
+    names = [f.name for f in dataclasses.fields(settings)]
+    specs: list[tuple[str, Any, Any]] = [
+        ("_target_", str, dataclasses.field(default=f"{settings.__module__}.{settings.__name__}")),
+        ("_convert_", str, dataclasses.field(default=convert)),
+    ]
+    for f in dataclasses.fields(settings):
+        factory: Any = f.default_factory
+        default = factory() if f.default is dataclasses.MISSING else f.default
+        if isinstance(default, tuple | list):  # OmegaConf holds sequences as lists
+            specs.append((f.name, hints[f.name], _list_field(list(default))))
+        else:
+            specs.append((f.name, hints[f.name], dataclasses.field(default=default)))
+
+    def check(self: Any) -> None:
+        settings(**{name: getattr(self, name) for name in names})
+
+    return dataclasses.make_dataclass(
+        f"{settings.__name__}Schema", specs, namespace={"__post_init__": check}
+    )
+
+
+def _list_field(default: list[Any]) -> Any:
+    return dataclasses.field(default_factory=lambda: list(default))
+
+
 def register_configs() -> None:
     """Store the schemas; call before composing (the app does on import, tests in conftest)."""
     store = ConfigStore.instance()
     store.store(group="plant", name="sedan_schema", node=SedanConfig)
     store.store(group="data", name="data_schema", node=DataConfig)
     store.store(group="data", name="logs_schema", node=LogsConfig)
+    store.store(group="controller", name="de_mpc_schema", node=schema_of(DEMPCConfig))
+    store.store(group="controller", name="bicycle_mpc_schema", node=schema_of(BicycleMPCConfig))
+    store.store(group="task", name="characterize_schema", node=schema_of(Characterize))
 
 
 # Keys that hold the control period: plant, data, model and controller share one (the model

@@ -139,7 +139,14 @@ ALLOWED: dict[str, set[str]] = {
         "harness.references",
         "learners",
     },
-    "harness.config": {"harness.core", "harness.plant", "harness.data"},
+    # The composition root: it knows every schema.
+    "harness.config": {
+        "harness.core",
+        "harness.plant",
+        "harness.data",
+        "harness.tasks",
+        "controllers",
+    },
     "harness.tasks": {
         "harness.core",
         "harness.plant",
@@ -148,7 +155,6 @@ ALLOWED: dict[str, set[str]] = {
         "harness.references",
         "harness.data",
         "harness.evaluation",
-        "harness.config",
         "learners",
         "controllers",
     },

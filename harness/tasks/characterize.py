@@ -64,18 +64,20 @@ def understeer_gradient(lateral: np.ndarray, excess: np.ndarray, upper: float) -
 
 @dataclass
 class Characterize:
-    """Runs the standard tests; the fields are ``conf/task/characterize.yaml``."""
+    """Runs the standard tests; the fields are the schema of ``conf/task/characterize.yaml``."""
 
-    circle_speed_mps: float = 80 / 3.6
-    steer_ramp_deg_per_s: float = 8.0
+    circle_speed_mps: float = 80 / 3.6  # ISO 4138 constant-speed ramp, ISO 7401 step: 80 km/h
+    steer_ramp_deg_per_s: float = 8.0  # slow enough to be quasi-steady
     steer_ramp_max_deg: float = 360.0
     step_target_lateral_accel_mps2: float = 4.0
     step_steer_rate_deg_per_s: float = 400.0
-    low_speed_mps: float = 3.0
+    low_speed_mps: float = 3.0  # kinematic (Ackermann) yaw-rate check
     low_speed_steer_deg: float = 90.0
-    coast_start_speed_mps: float = 33.0
+    coast_start_speed_mps: float = 33.0  # coast-down fit range
     coast_end_speed_mps: float = 5.0
-    launch_duration_s: float = 150.0
+    launch_duration_s: float = 150.0  # full throttle (0.2) from rest
+    # ISO 4138 steady-state method: the speeds, and the steering-wheel angles held at each for
+    # steady_state_hold_s (the last 1 s averaged).
     steady_state_speeds_mps: tuple[float, ...] = (10.0, 20.0, 80 / 3.6, 30.0)
     steady_state_steer_deg: tuple[float, ...] = (5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 50.0, 60.0)
     steady_state_hold_s: float = 5.0
