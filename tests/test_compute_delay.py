@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 
 from controllers import DEMPCConfig, check_controller_config
 from harness.core.contracts import LiftedModel
@@ -28,6 +27,7 @@ from harness.plant.rollout import closed_loop
 from harness.recorder import Recorder
 from harness.references import DoubleLaneChange, ReferencePath
 from harness.references.course import path_metrics
+from tests.helpers import compose
 from tests.test_rollout import Counting, Integrator
 from tests.toy_models import ModelPlant, feasible_reference, toy_bilinear_model, toy_linear_model
 
@@ -204,11 +204,7 @@ def test_compute_delay_is_checked_and_named_in_one_line() -> None:
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (CONF_DIR / "controller").glob("*.yaml")))
 def test_every_controller_config_takes_compute_delay_from_the_command_line(name: str) -> None:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        default = compose(config_name="config", overrides=[f"controller={name}"])
-        delayed = compose(
-            config_name="config",
-            overrides=[f"controller={name}", "controller.compute_delay=one_step"],
-        )
+    default = compose(f"controller={name}")
+    delayed = compose(f"controller={name}", "controller.compute_delay=one_step")
     assert check_controller_config(default.controller).compute_delay == "none"
     assert check_controller_config(delayed.controller).compute_delay == "one_step"

@@ -13,8 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -33,17 +31,13 @@ from harness.tasks.characterize import Characterize
 from harness.tasks.collect import Collect
 from harness.tasks.pipeline import Pipeline
 from learners import Learner
+from tests.helpers import compose
 
 SCHEMAS = {"plant": SedanParams, "data": (DataConfig, LogsConfig)}
 CONFIGS = [
     (group, path.stem) for group in SCHEMAS for path in sorted((CONF_DIR / group).glob("*.yaml"))
 ]
 PLANTS = [name for group, name in CONFIGS if group == "plant"]
-
-
-def compose_config(*overrides: str):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
 
 
 def test_the_three_plants_exist() -> None:
@@ -56,7 +50,7 @@ def test_every_plant_and_data_config_composes_and_converts_to_its_schema(
 ) -> None:
     # A user's logs (``- logs_schema``) need the directory they are in: any one composes.
     logs = "logs_schema" in (CONF_DIR / group / f"{name}.yaml").read_text()
-    cfg = compose_config(f"{group}={name}", *(["data.path=."] if logs else []))
+    cfg = compose(f"{group}={name}", *(["data.path=."] if logs else []))
     validate(cfg)
     block = OmegaConf.to_object(cfg[group])
     assert isinstance(block, SCHEMAS[group]) and block.name == name
@@ -64,13 +58,13 @@ def test_every_plant_and_data_config_composes_and_converts_to_its_schema(
 
 def test_logs_without_their_directory_are_refused_in_one_line() -> None:
     with pytest.raises(ValueError, match=r"^data\.path must be given") as info:
-        validate(compose_config("data=ddk_carsim"))
+        validate(compose("data=ddk_carsim"))
     assert "\n" not in str(info.value)
 
 
 @pytest.mark.parametrize("name", PLANTS)
 def test_every_plant_composes_loads_resets_and_steps(name: str) -> None:
-    plant = instantiate(compose_config(f"plant={name}").plant)
+    plant = instantiate(compose(f"plant={name}").plant)
     assert isinstance(plant, Sedan) and plant.params.name == name
     x0 = plant.reset(seed=0)
     np.testing.assert_array_equal(x0, np.zeros(3))
@@ -83,7 +77,7 @@ def test_every_plant_composes_loads_resets_and_steps(name: str) -> None:
 
 
 def test_the_plant_config_builds_a_sedan_on_real_parameter_dataclasses() -> None:
-    plant = instantiate(compose_config("plant=sedan_loaded").plant)
+    plant = instantiate(compose("plant=sedan_loaded").plant)
     params = plant.params
     assert type(params) is SedanParams  # not the schema with Hydra's keys
     assert isinstance(params.tire, TireParams) and isinstance(params.chassis, ChassisParams)
@@ -93,8 +87,7 @@ def test_the_plant_config_builds_a_sedan_on_real_parameter_dataclasses() -> None
 
 def test_plant_variants_differ_only_where_configured() -> None:
     dry, wet, loaded = (
-        instantiate(compose_config(f"plant={n}").plant)
-        for n in ("sedan", "sedan_wet", "sedan_loaded")
+        instantiate(compose(f"plant={n}").plant) for n in ("sedan", "sedan_wet", "sedan_loaded")
     )
     assert wet.params.tire.road_friction == 0.5 and dry.params.tire.road_friction == 0.9
     assert dataclasses.replace(wet.params.tire, road_friction=0.9) == dry.params.tire
@@ -116,7 +109,7 @@ def test_a_wrong_type_or_an_unknown_key_fails_at_composition_naming_the_key(
     override: str, key: str
 ) -> None:
     with pytest.raises(ConfigCompositionException) as info:
-        compose_config(override)
+        compose(override)
     assert key in str(info.value).splitlines()[0]
     assert info.value.__cause__.full_key == key  # type: ignore[union-attr]
 
@@ -141,7 +134,7 @@ def test_a_wrong_type_or_an_unknown_key_fails_at_composition_naming_the_key(
 def test_an_out_of_range_value_fails_validation_in_one_line_naming_the_key(
     override: str, message: str | None
 ) -> None:
-    cfg = compose_config(override)
+    cfg = compose(override)
     if message is None:
         validate(cfg)
         cfg.task.other_plants.sedan_wet.tire.road_friction = -1.0
@@ -155,10 +148,7 @@ def test_an_out_of_range_value_fails_validation_in_one_line_naming_the_key(
 def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_horizons(
     tmp_path: Path,
 ) -> None:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(
-            config_name="config", overrides=["experiment=paper"], return_hydra_config=True
-        )
+    cfg = compose("experiment=paper", as_app=True)
     params = cfg.hydra.sweeper.params
     assert params.seed == "0,1,2"
     # Every learner of conf/learner/, the physics baseline and the bilinear ones included: the
@@ -179,14 +169,14 @@ def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_h
 
 def test_random_layer_learners_are_their_base_learner_with_the_layer_on() -> None:
     for name in ("dnn", "deep_edmd"):
-        base = compose_config(f"learner={name}").learner
-        variant = compose_config(f"learner={name}_random_layer").learner
+        base = compose(f"learner={name}").learner
+        variant = compose(f"learner={name}_random_layer").learner
         assert variant.random_layer.enabled and not base.random_layer.enabled
         assert variant._target_ == base._target_ and variant.training == base.training
 
 
 def test_experiment_generalization_evaluates_on_the_wet_and_loaded_plants() -> None:
-    cfg = compose_config("experiment=generalization")
+    cfg = compose("experiment=generalization")
     others = cfg.task.other_plants
     assert set(others) == {"sedan_wet", "sedan_loaded"}
     assert others.sedan_wet.tire.road_friction == 0.5
@@ -234,30 +224,22 @@ BUILDS: dict[str, type | tuple[type, ...]] = {
 }
 
 
-def _compose_as_the_app(*overrides: str):
-    """Compose as ``python -m harness`` does, with ``${hydra:...}`` resolvable."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=list(overrides), return_hydra_config=True)
-    HydraConfig.instance().set_config(cfg)
-    return cfg
-
-
 @pytest.mark.parametrize(("group", "name"), ALL_CONFIGS, ids=[f"{g}/{n}" for g, n in ALL_CONFIGS])
 def test_every_config_file_composes_validates_and_builds(group: str, name: str) -> None:
     """Each option, chosen on top of the defaults, composes, passes every check and builds."""
     if group == "hydra/launcher":
         if name.startswith("ray"):  # the Ray launcher is an optional extra (make test-ray)
             pytest.importorskip("hydra_plugins.hydra_ray_launcher")
-        cfg = _compose_as_the_app(f"hydra/launcher={name}")
+        cfg = compose(f"hydra/launcher={name}", as_app=True)
         module, _, cls = cfg.hydra.launcher._target_.rpartition(".")
         assert isinstance(getattr(importlib.import_module(module), cls), type)
         return
     if group == "reference":  # a reference is built where a task lists it
-        cfg = _compose_as_the_app(f"+reference@task.references.probe={name}")
+        cfg = compose(f"+reference@task.references.probe={name}", as_app=True)
         node = cfg.task.references.probe
     else:
         logs = group == "data" and "logs_schema" in (CONF_DIR / "data" / f"{name}.yaml").read_text()
-        cfg = _compose_as_the_app(f"{group}={name}", *(["data.path=."] if logs else []))
+        cfg = compose(f"{group}={name}", *(["data.path=."] if logs else []), as_app=True)
         node = cfg.task if group == "experiment" else cfg[group]
     validate(cfg)
     built = OmegaConf.to_object(node) if group == "data" else instantiate(node)

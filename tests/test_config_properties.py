@@ -16,17 +16,15 @@ import math
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from harness.app import composition_error
 from harness.config import validate
-from harness.core.paths import CONF_DIR
 from harness.plant import Sedan
 from harness.plant.sedan import PlantUnstableError
+from tests.helpers import compose
 
 hypothesis = pytest.importorskip("hypothesis")
 st = pytest.importorskip("hypothesis.strategies")
@@ -45,13 +43,6 @@ SETUPS: list[tuple[tuple[str, ...], str]] = [
     (("task=characterize",), "task"),
 ]
 SKIP = {"seed", "learner.seed", "learner.training.seed", "data.seed"}  # any int is a valid seed
-
-
-def compose_as_the_app(overrides: list[str]) -> DictConfig:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
-    HydraConfig.instance().set_config(cfg)
-    return cfg
 
 
 def numeric_keys(node: DictConfig | ListConfig, path: str) -> list[str]:
@@ -73,7 +64,7 @@ def numeric_keys(node: DictConfig | ListConfig, path: str) -> list[str]:
 def _cases() -> list[tuple[tuple[str, ...], str]]:
     cases = []
     for options, subtree in SETUPS:
-        cfg = compose_as_the_app(list(options))
+        cfg = compose(*options, as_app=True)
         for key in numeric_keys(OmegaConf.select(cfg, subtree), subtree):
             if key not in SKIP:
                 cases.append((options, key))
@@ -106,7 +97,7 @@ def _names(message: str, key: str) -> bool:
 def check_one(options: tuple[str, ...], key: str, value: str) -> None:
     override = f"{key}={value}"
     try:
-        cfg = compose_as_the_app([*options, override])
+        cfg = compose(*options, override, as_app=True)
     except Exception as error:  # Hydra's own: a value of the wrong type, a bad override
         message = composition_error(error)
         assert "\n" not in message and _names(message, key), (override, message)

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import piqp
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from controllers import (
@@ -27,13 +26,13 @@ from controllers.de_mpc import MAX_HORIZON_S
 from controllers.lifted_linear import LiftedLinearModel, fit_lifted_linear
 from harness.core.contracts import Controller, LiftedModel, Plant, StepInfo, dynamics_of
 from harness.core.episode import Episode
-from harness.core.paths import CONF_DIR
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, drive_episode
 from harness.evaluation.tracking import track
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import from_episode
+from tests.helpers import compose
 from tests.qp_truth import PIQP_KKT_TOL, assert_optimal, solution_kkt
 from tests.toy_models import ModelPlant, feasible_reference
 from tests.toy_models import toy_linear_model as linear_model
@@ -462,8 +461,7 @@ def test_the_longest_horizon_allowed_stays_well_posed_on_a_fast_unstable_mode() 
 def test_a_wrong_controller_config_fails_from_the_composed_config_alone(
     overrides: list[str], message: str
 ) -> None:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
+    cfg = compose(*overrides)
     with pytest.raises(ValueError) as info:
         check_controller_config(cfg.controller)
     assert message in str(info.value) and "\n" not in str(info.value)
@@ -507,8 +505,7 @@ def test_a_model_that_breaks_the_contract_is_refused() -> None:
 
 @pytest.mark.parametrize(("name", "horizons"), [("de_mpc", (10, 7)), ("de_mpc_long", (60, 50))])
 def test_the_configs_instantiate_with_the_model_given_at_run_time(name, horizons) -> None:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"controller={name}"])
+    cfg = compose(f"controller={name}")
     settings = instantiate(cfg.controller)
     assert settings == check_controller_config(cfg.controller)
     controller = settings(linear_model())
@@ -553,6 +550,12 @@ def test_a_short_closed_loop_on_the_sedan_runs_and_reports(quick_model_and_episo
     assert set(metrics) >= {"rmse", "solve_time_ms", "deadline_misses", "solver_failures"}
     assert set(metrics["rmse"]) == {"vx", "vy", "yaw_rate"}
     assert set(metrics["solve_time_ms"]) == {"median", "p99", "max"}
-    assert all(np.isfinite(v) for v in metrics["rmse"].values())
-    assert metrics["rmse"]["vx"] < 2.0
+    # The RMSE is the run's own: its states against the reference it was given.
+    rmse = np.sqrt(np.mean((run.states - reference) ** 2, axis=0))
+    np.testing.assert_allclose([metrics["rmse"][s] for s in ("vx", "vy", "yaw_rate")], rmse)
+    # It tracks: every state's error is under half of what holding the start would leave (the
+    # reference moves 1.6 m/s, 0.56 m/s and 0.47 rad/s RMS about its start; measured 0.12, 0.13
+    # and 0.10 on 2026-11-26, the start itself 0.42 m/s and 0.34 rad/s off in vy and r).
+    held = np.sqrt(np.mean((reference - reference[0]) ** 2, axis=0))
+    assert np.all(rmse < 0.5 * held), (rmse, held)
     assert run.predicted.shape == (200, 60, 3) and metrics["horizon"] == {"Np": 60, "Nc": 50}

@@ -9,9 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
-from harness.core.paths import CONF_DIR
+from tests.helpers import compose
 from tests.test_pipeline import TINY
 
 # Every job log line names the process that wrote it.
@@ -96,8 +95,7 @@ def test_concurrent_jobs_that_share_a_data_config_collect_it_once(joblib_sweep) 
 
 
 def launcher_config(*overrides: str):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose("config", overrides=list(overrides), return_hydra_config=True).hydra
+    return compose(*overrides, as_app=True).hydra
 
 
 def test_the_slurm_config_extends_the_submitit_plugin_with_this_projects_defaults() -> None:

@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.utils import get_class, instantiate
 
 from harness.core.episode import MinMaxNormalizer
 from harness.core.paths import CONF_DIR
 from learners import Learner
 from learners import load as load_learner
+from tests.helpers import learner_config
 from tests.toydata import drive_episodes
 
 NAMES = sorted(path.stem for path in (CONF_DIR / "learner").glob("*.yaml"))
@@ -45,11 +45,6 @@ TINY: dict[str, list[str]] = {
 }
 
 
-def compose_learner(name: str, *overrides: str):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"learner={name}", *overrides]).learner
-
-
 @pytest.fixture(scope="module")
 def drives() -> dict:
     episodes = drive_episodes(6, 60.0)  # the drives tests/test_learners.py fits (cached)
@@ -62,7 +57,7 @@ def drives() -> dict:
 
 
 def test_every_learner_class_of_conf_has_its_tiny_settings() -> None:
-    targets = {compose_learner(name)._target_ for name in NAMES}
+    targets = {learner_config(name)._target_ for name in NAMES}
     missing = targets - set(TINY)
     assert missing == set(), f"add a row to TINY in {__file__} for {sorted(missing)}"
     assert len(NAMES) >= 11
@@ -72,8 +67,8 @@ def test_every_learner_class_of_conf_has_its_tiny_settings() -> None:
 def test_every_learner_yaml_builds_fits_predicts_and_round_trips(
     name: str, drives: dict, tmp_path: Path
 ) -> None:
-    cfg = compose_learner(name)
-    cfg = compose_learner(name, *TINY[cfg._target_])
+    cfg = learner_config(name)
+    cfg = learner_config(name, *TINY[cfg._target_])
     learner = instantiate(cfg)
     assert type(learner) is get_class(cfg._target_) and isinstance(learner, Learner)
     fitted = learner.fit(drives["train"], drives["validation"], drives["normalizer"])

@@ -10,12 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import learners
 from harness.core.episode import Episode, MinMaxNormalizer
-from harness.core.paths import CONF_DIR
 from harness.evaluation.prediction import open_loop, rmse
 from learners import (
     DNN,
@@ -32,6 +30,7 @@ from learners.bilinear_deep_edmd import BilinearDeepEDMD
 from learners.input_edmd import InputEDMD
 from learners.single_track import SingleTrack
 from learners.trained import TrainedLearner
+from tests.helpers import learner_config
 from tests.toydata import drive_episodes
 
 NAMES = ("edmd", "elm_edmd", "dnn", "deep_edmd", "input_edmd")
@@ -85,11 +84,6 @@ def fitted(data: dict) -> dict[str, Learner]:
         name: make().fit(data["train"], data["validation"], data["normalizer"])
         for name, make in TINY.items()
     }
-
-
-def compose_learner(name: str, *overrides: str):
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=[f"learner={name}", *overrides]).learner
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -233,7 +227,7 @@ def test_every_learner_config_builds_a_learner_its_saved_hyperparameters_rebuild
     name: str,
 ) -> None:
     """What a model file stores (plain values) builds the same learner as the config did."""
-    learner = instantiate(compose_learner(name))
+    learner = instantiate(learner_config(name))
     assert isinstance(learner, Learner)
     saved = learner.hyperparameters
     assert type(learner).from_hyperparameters(saved).hyperparameters == saved
@@ -246,14 +240,14 @@ def test_every_learner_config_builds_a_learner_its_saved_hyperparameters_rebuild
 def test_edmd_and_elm_edmd_are_one_class_whose_dictionary_the_config_chooses(
     name: str, dictionary: type, size: int, data: dict
 ) -> None:
-    learner = instantiate(compose_learner(name))
+    learner = instantiate(learner_config(name))
     assert type(learner) is EDMD and type(learner.dictionary) is dictionary
     learner.fit(data["train"], [], data["normalizer"])
     assert learner.A_.shape == (3 + 1 + size, 3 + 1 + size)  # [x; 1; phi(x)]
-    sin = instantiate(compose_learner("elm_edmd", "learner.dictionary.activation=sin"))
+    sin = instantiate(learner_config("elm_edmd", "learner.dictionary.activation=sin"))
     assert sin.dictionary.activation == "sin"
     swapped = instantiate(
-        compose_learner(
+        learner_config(
             "edmd",
             "~learner.dictionary.num_centers",
             "learner.dictionary._target_=learners.dictionaries.RandomFeatures",
@@ -297,7 +291,7 @@ def test_the_learners_package_imports_no_recorder_figures_or_config_system() -> 
 )
 def test_a_wrong_learner_value_names_its_key(name: str, override: str, key: str) -> None:
     with pytest.raises(Exception) as info:
-        instantiate(compose_learner(name, override))
+        instantiate(learner_config(name, override))
     error = info.value.__cause__ or info.value
     assert isinstance(error, ValueError)
     assert key in str(error) and "\n" not in str(error)
@@ -315,7 +309,7 @@ def test_an_unknown_key_in_a_nested_block_is_refused_naming_it(name: str, overri
     """The block's dataclass is its schema: a key it lacks fails where Hydra builds it."""
     unknown = override.rpartition(".")[2].partition("=")[0]
     with pytest.raises(Exception) as info:
-        instantiate(compose_learner(name, override))
+        instantiate(learner_config(name, override))
     error = info.value.__cause__ or info.value
     assert isinstance(error, TypeError)
     assert f"'{unknown}'" in str(error) and "\n" not in str(error)

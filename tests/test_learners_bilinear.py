@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import learners
@@ -15,11 +14,11 @@ from controllers import DEMPC, TimeVaryingQP
 from controllers.linearization import BilinearLinearization
 from harness.core.contracts import BilinearModel, LiftedModel
 from harness.core.episode import Episode, MinMaxNormalizer
-from harness.core.paths import CONF_DIR
 from harness.evaluation.prediction import open_loop, rmse
 from harness.tasks.pipeline import _not_lifted_linear
 from learners import EDMD, ThinPlateRBF
 from learners.bilinear import BilinearEDMD, bilinear_rollout
+from tests.helpers import compose, synthetic_episodes
 from tests.test_learners_edmd import NORMALIZER
 from tests.toydata import drive_episodes
 
@@ -39,27 +38,13 @@ V0 = NORMALIZER.inputs(np.zeros(2))  # (0.5, 0.1): min-max puts "no input" insid
 
 def bilinear_episodes(count: int = 4, steps: int = 400, seed: int = 0) -> list[Episode]:
     """The system above, driven by random normalized inputs, written out in physical units."""
-    rng = np.random.default_rng(seed)
-    episodes = []
-    for k in range(count):
-        x = np.empty((steps, 3))
-        v = rng.uniform(0.0, 1.0, (steps, 2))
-        x[0] = rng.uniform(0.0, 1.0, 3)
-        for t in range(steps - 1):
-            vbar = v[t] - V0
-            x[t + 1] = (
-                A_TRUE @ x[t] + C_TRUE + B_TRUE @ v[t] + np.einsum("j,jnk,k", vbar, H_TRUE, x[t])
-            )
-        episodes.append(
-            Episode(
-                f"bilinear_{k}",
-                np.arange(steps) * 0.01,
-                NORMALIZER.states_inverse(x),
-                NORMALIZER.inputs_inverse(v),
-                np.zeros((steps, 3)),
-            )
-        )
-    return episodes
+
+    def step(x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return A_TRUE @ x + C_TRUE + B_TRUE @ v + np.einsum("j,jnk,k", v - V0, H_TRUE, x)
+
+    return synthetic_episodes(
+        step, NORMALIZER, count=count, steps=steps, seed=seed, name="bilinear"
+    )
 
 
 @pytest.mark.parametrize("ridge_prior", ["identity", "zero"])
@@ -156,12 +141,8 @@ def test_a_bilinear_model_is_never_taken_for_a_lifted_linear_one() -> None:
 
 
 def test_the_config_builds_it_and_bad_values_fail_in_one_line() -> None:
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        config = compose(config_name="config", overrides=["learner=bilinear_edmd"]).learner
-        bad = compose(
-            config_name="config",
-            overrides=["learner=bilinear_edmd", "learner.ridge_prior=ones"],
-        ).learner
+    config = compose("learner=bilinear_edmd").learner
+    bad = compose("learner=bilinear_edmd", "learner.ridge_prior=ones").learner
     model = instantiate(config)
     assert isinstance(model, BilinearEDMD) and model.name == "bilinear_edmd"
     assert model.ridge_prior == "identity" and model.ridge == 1e-4

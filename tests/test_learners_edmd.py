@@ -9,6 +9,7 @@ from harness.core.episode import Episode, MinMaxNormalizer
 from learners import EDMD, DeepEDMD, RandomFeatures, ThinPlateRBF
 from learners.dictionaries import ACTIVATIONS
 from learners.linalg import ridge_lstsq
+from tests.helpers import synthetic_episodes
 from tests.toydata import drive_episodes
 
 # A lightly damped, coupled 3-state system in normalized coordinates, driven by 2 inputs.
@@ -23,29 +24,16 @@ NORMALIZER = MinMaxNormalizer(
 
 
 def linear_episodes(count: int = 4, steps: int = 400, seed: int = 0) -> list[Episode]:
-    """z_{k+1} = A z_k + B v_k in normalized coordinates, written out in physical units.
-
-    Inputs are drawn in the normalized input space and mapped back with ``inputs_inverse``, so
-    the system is exactly linear in what the learners see (the pedal's two slopes included).
-    """
-    rng = np.random.default_rng(seed)
-    episodes = []
-    for k in range(count):
-        z = np.empty((steps, 3))
-        v = rng.uniform(0.0, 1.0, (steps, 2))
-        z[0] = rng.uniform(0.0, 1.0, 3)
-        for t in range(steps - 1):
-            z[t + 1] = A_TRUE @ z[t] + B_TRUE @ v[t]
-        episodes.append(
-            Episode(
-                f"linear_{k}",
-                np.arange(steps) * 0.01,
-                NORMALIZER.states_inverse(z),
-                NORMALIZER.inputs_inverse(v),
-                np.zeros((steps, 3)),
-            )
-        )
-    return episodes
+    """z_{k+1} = A z_k + B v_k in normalized coordinates, written out in physical units:
+    exactly linear in what the learners see (the pedal's two slopes included)."""
+    return synthetic_episodes(
+        lambda z, v: A_TRUE @ z + B_TRUE @ v,
+        NORMALIZER,
+        count=count,
+        steps=steps,
+        seed=seed,
+        name="linear",
+    )
 
 
 def test_edmd_with_the_identity_lift_recovers_a_and_b_exactly() -> None:

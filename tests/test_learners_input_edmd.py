@@ -15,8 +15,8 @@ from learners import RandomFeatures, ThinPlateRBF
 from learners.bilinear import BilinearEDMD
 from learners.edmd import EDMD
 from learners.input_edmd import InputEDMD
+from tests.helpers import learner_config, synthetic_episodes
 from tests.test_dnn_mpc import OwnModelPlant
-from tests.test_learners import compose_learner
 from tests.test_learners_edmd import NORMALIZER
 
 DT = 0.01
@@ -24,26 +24,15 @@ DT = 0.01
 
 def episodes_of(step, count: int = 4, steps: int = 600, seed: int = 0) -> list[Episode]:
     """Drives of x_n+ = step(x_n, v) under smooth random normalized inputs, in physical units."""
-    rng = np.random.default_rng(seed)
-    episodes = []
-    for k in range(count):
-        t = np.arange(steps) * DT
-        freqs, phases = rng.uniform(0.2, 2.0, (2, 3)), rng.uniform(0, 2 * np.pi, (2, 3))
-        v = 0.5 + 0.5 * np.mean(np.sin(2 * np.pi * freqs * t[:, None, None] + phases), -1)
-        x = np.empty((steps, 3))
-        x[0] = rng.uniform(0.3, 0.7, 3)
-        for i in range(steps - 1):
-            x[i + 1] = step(x[i], v[i])
-        episodes.append(
-            Episode(
-                f"toy_{k}",
-                t,
-                NORMALIZER.states_inverse(x),
-                NORMALIZER.inputs_inverse(v),
-                np.zeros((steps, 3)),
-            )
-        )
-    return episodes
+    return synthetic_episodes(
+        step,
+        NORMALIZER,
+        count=count,
+        steps=steps,
+        seed=seed,
+        inputs="smooth",
+        start=(0.3, 0.7),
+    )
 
 
 def affine_step(x: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -153,13 +142,13 @@ def test_a_ridge_that_is_not_a_number_or_a_list_of_numbers_says_so(ridge) -> Non
 
 def test_a_quoted_ridge_on_the_command_line_is_refused_in_one_line() -> None:
     with pytest.raises(Exception) as info:
-        instantiate(compose_learner("input_edmd", "learner.ridge='1e-4'"))
+        instantiate(learner_config("input_edmd", "learner.ridge='1e-4'"))
     error = info.value.__cause__ or info.value
     assert isinstance(error, ValueError)
     assert (
         str(error) == "learner.ridge must be a number >= 0 or a non-empty list of them (got '1e-4')"
     )
-    assert instantiate(compose_learner("input_edmd", "learner.ridge=1e-4")).ridges == [1e-4]
+    assert instantiate(learner_config("input_edmd", "learner.ridge=1e-4")).ridges == [1e-4]
 
 
 def test_centres_drawn_as_samples_are_distinct_data_points() -> None:

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import pytest
 
 from harness.core.episode import Episode
 from harness.output import load_arrays
+from tests.helpers import run_app
 
 TINY = [
     "data.episodes=3",
@@ -46,23 +46,8 @@ class SteadyCruise:
 
 
 def run_main(tmp: Path, run_dir: Path, *overrides: str) -> dict:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "harness",
-            *TINY,
-            f"data.root={tmp}/datasets",
-            f"hydra.run.dir={run_dir}",
-            *overrides,
-        ],
-        cwd=tmp,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, result.stderr[-3000:]
-    return json.loads((run_dir / "metrics.json").read_text())
+    """The app's job on the tiny drives, in this process (the command line has its own tests)."""
+    return run_app(run_dir, *TINY, f"data.root={tmp}/datasets", *overrides)
 
 
 @pytest.fixture(scope="module")
@@ -119,19 +104,21 @@ def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
     assert provenance["this_run"]["normalizer"] == metrics["data"]["normalizer"]
 
 
-def test_a_saved_model_used_on_another_dataset_is_named_in_a_warning(edmd_run) -> None:
+def test_a_saved_model_used_on_another_dataset_is_named_in_a_warning(
+    edmd_run, caplog: pytest.LogCaptureFixture
+) -> None:
     """``data.seed=7``: other drives, another normalizer; the run goes on, and says so."""
     tmp, run_dir, metrics = edmd_run
     out = tmp / "seed7"
-    other = run_main(
-        tmp, out, "learner=edmd", "data.seed=7", f"task.model_path={run_dir}/model_edmd.pt"
-    )
+    with caplog.at_level(logging.WARNING):
+        other = run_main(
+            tmp, out, "learner=edmd", "data.seed=7", f"task.model_path={run_dir}/model_edmd.pt"
+        )
     provenance = other["training"]["provenance"]
     assert provenance["differs"] == ["dataset", "normalizer"]
     assert provenance["trained_on"]["dataset"] == metrics["data"]["key"]
     assert provenance["this_run"]["dataset"] == other["data"]["key"] != metrics["data"]["key"]
-    (job_log,) = out.glob("*.log")  # Hydra's job log
-    log = job_log.read_text()
+    log = caplog.text
     assert f"task.model_path {run_dir / 'model_edmd.pt'} was trained on plant sedan" in log
     assert "dataset and normalizer differ (training.provenance)" in log
 

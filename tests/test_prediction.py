@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ from harness.core.episode import Episode, MinMaxNormalizer
 from harness.evaluation.prediction import by_episode, evaluate, robustness, windowed
 from harness.recorder import Recorder
 from learners import DNN, EDMD, Learner, ThinPlateRBF
+from tests.helpers import synthetic_episodes
 from tests.toydata import drive_episodes
 
 A_TRUE = np.array([[0.98, 0.05, 0.0], [-0.05, 0.95, 0.0], [0.0, 0.02, 0.9]])
@@ -21,14 +23,10 @@ B_TRUE = np.array([[0.01, 0.0], [0.0, 0.02], [0.01, -0.01]])
 def linear_episode(name: str, steps: int, seed: int) -> Episode:
     """A linear system in the normalized coordinates of a 0..1 normalizer (physical = normalized
     for the states; inputs mapped back exactly), sampled at 10 ms."""
-    rng = np.random.default_rng(seed)
-    v = rng.uniform(0, 1, (steps, 2))
-    z = np.zeros((steps, 3))
-    z[0] = rng.uniform(0, 1, 3)
-    for k in range(steps - 1):
-        z[k + 1] = A_TRUE @ z[k] + B_TRUE @ v[k]
-    inputs = NORMALIZER.inputs_inverse(v)
-    return Episode(name, np.arange(steps) * 0.01, z, inputs, np.zeros((steps, 3)))
+    (episode,) = synthetic_episodes(
+        lambda z, v: A_TRUE @ z + B_TRUE @ v, NORMALIZER, count=1, steps=steps, seed=seed
+    )
+    return dataclasses.replace(episode, name=name)
 
 
 NORMALIZER = MinMaxNormalizer(

@@ -19,8 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 
@@ -28,7 +26,6 @@ import learners
 from controllers import DEMPCConfig
 from harness.config import validate
 from harness.core.episode import Episode, MinMaxNormalizer
-from harness.core.paths import CONF_DIR
 from harness.data.store import DataConfig, Dataset
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import ChassisParams, TireParams
@@ -42,6 +39,7 @@ from learners.dnn import DNN
 from learners.edmd import EDMD
 from learners.input_edmd import InputEDMD
 from learners.single_track import SingleTrack
+from tests.helpers import compose
 from tests.toydata import drive_episodes
 
 TINY = [
@@ -57,9 +55,7 @@ TINY = [
 
 def build_as_the_app(*overrides: str) -> None:
     """What ``python -m harness`` does before the task runs: compose, validate, build."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[*TINY, *overrides], return_hydra_config=True)
-    HydraConfig.instance().set_config(cfg)
+    cfg = compose(*TINY, *overrides, as_app=True)
     validate(cfg)
     instantiate(cfg.plant)
     try:

@@ -19,14 +19,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 
 from harness.config import validate
-from harness.core.paths import CONF_DIR
 from harness.data import store
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, DatasetError, collect, collect_counted, load
 from harness.plant import Sedan, SedanParams
+from tests.helpers import compose
 
 DRY = DriverKnowledge.of(SedanParams())
 NAMES = [f"episode_{i:04d}" for i in range(4)]
@@ -271,8 +270,7 @@ def test_absurd_sizes_are_refused_in_one_line_naming_the_key_before_any_work() -
         DataConfig(max_steps=10.5)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"^data\.max_steps \(10000000000000\) x data\.episodes"):
         DataConfig(max_steps=1e13)  # type: ignore[arg-type]  # a whole float (1e13 typed) is one
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("config", overrides=["task=collect", "data.max_steps=10000000000000"])
+    cfg = compose("task=collect", "data.max_steps=10000000000000")
     with pytest.raises(ValueError, match=r"data\.max_steps") as info:
         validate(cfg)  # what the app runs before it builds anything
     assert "\n" not in str(info.value)
