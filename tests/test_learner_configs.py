@@ -3,19 +3,23 @@ the YAML alone enrols it here (the class needs one row of tiny settings below, k
 class, not by the config's name).
 
 Each ``conf/learner/*.yaml`` composes, builds its class, fits a few drives of the real plant in
-seconds, predicts a held-out drive finitely from its measured start, and survives a save and a
-load with the same predictions to rounding.
+seconds, predicts a held-out drive finitely from its measured start, survives a save and a
+load with the same predictions to rounding, and, where DE-MPC linearises it (bilinear or
+nonlinear dynamics), gives the Jacobians of its own step.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from hydra.utils import get_class, instantiate
 
-from harness.core.episode import MinMaxNormalizer
+from controllers.linearization import BilinearLinearization
+from harness.core.contracts import dynamics_of
+from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.paths import CONF_DIR
 from learners import Learner
 from learners import load as load_learner
@@ -82,3 +86,30 @@ def test_every_learner_yaml_builds_fits_predicts_and_round_trips(
     np.testing.assert_allclose(
         loaded.predict(test.states[0], test.inputs[:300]), predicted, rtol=1e-6, atol=1e-9
     )
+    check_linearization(learner, test)
+
+
+def check_linearization(learner: Learner, drive: Episode) -> None:
+    """A model DE-MPC linearises (declared bilinear or nonlinear) gives the Jacobians of its own
+    step (central differences) and the affine term that makes the linearisation exact at the
+    point; checked at points of a held-out drive."""
+    dynamics = dynamics_of(learner)
+    if dynamics not in ("bilinear", "nonlinear"):
+        return
+    model: Any = BilinearLinearization(learner) if dynamics == "bilinear" else learner  # type: ignore[arg-type]
+    rows = np.linspace(100, len(drive.states) - 100, 4).astype(int)
+    z = model.lift(drive.states[rows])
+    v = model.normalizer_.inputs(drive.inputs[rows])
+    A, B, d = model.linearize(z, v)
+    h = 1e-6
+    for jacobian, point in ((A, z), (B, v)):
+        for j in range(point.shape[1]):
+            delta = np.zeros(point.shape[1])
+            delta[j] = h
+            if point is z:
+                slope = (model.step(z + delta, v) - model.step(z - delta, v)) / (2 * h)
+            else:
+                slope = (model.step(z, v + delta) - model.step(z, v - delta)) / (2 * h)
+            np.testing.assert_allclose(jacobian[:, :, j], slope, atol=1e-4, err_msg=f"column {j}")
+    exact = (A @ z[..., None])[..., 0] + (B @ v[..., None])[..., 0] + d
+    np.testing.assert_allclose(exact, model.step(z, v), atol=1e-9)
