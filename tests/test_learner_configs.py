@@ -43,7 +43,7 @@ TINY: dict[str, list[str]] = {
     "learners.input_edmd.InputEDMD": ["learner.dictionary.num_centers=100"],
     "learners.single_track.SingleTrack": [],
     "learners.persistence.Persistence": [],
-    "learners.sindy.SINDyC": ["learner.degree=2"],
+    "learners.sindy.SINDyC": [],
     "learners.dnn.DNN": [*_NETWORK, "learner.hidden=[16,16]"],
     "learners.deep_edmd.DeepEDMD": _NETWORK,
     "learners.bilinear_deep_edmd.BilinearDeepEDMD": _NETWORK,
