@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from harness.core.files import try_lock
-from harness.report import Run, main, read_runs, report
+from harness.report import Run, load, main, read_runs, report
 from harness.report.figures import loss_figure
 from harness.report.tables import (
     course_speed_table,
@@ -377,3 +377,42 @@ def test_the_course_tables_judge_every_run_on_its_course_and_name_the_highest_sp
         "sedan": ["2", "60", "60, 80, 100"],
         "sedan_wet": ["2", "60", "60, 80, 100"],
     }
+
+
+def test_load_gives_one_row_per_job_controller_and_reference_with_every_metric(
+    tiny_sweep: Path,
+) -> None:
+    """``harness.report.load``: the sweep as a pandas table whose numbers are the jobs' own."""
+    table = load(tiny_sweep)
+    runs = read_runs(tiny_sweep)
+    for run in runs:
+        rows = table[table.job == run.name]
+        if run.metrics is None:  # the failed job: one row, its error, no closed loop
+            assert len(rows) == 1 and rows.error.iloc[0] and rows.controller.isna().all()
+            continue
+        controllers = run.metrics["tracking"]["controllers"]
+        skipped = [name for name, runs in controllers.items() if "skipped" in runs]
+        loops = [
+            (controller, reference, values)
+            for controller, references in controllers.items()
+            for reference, values in references.items()
+            if controller not in skipped
+        ]
+        assert len(rows) == len(loops) + len(skipped) and loops  # DE-MPC tracked at least
+        for name in skipped:  # the baseline on drives too short to identify it: its own row
+            (row,) = rows[rows.controller == name].index
+            assert table.at[row, "skipped"] == controllers[name]["skipped"]
+        for controller, reference, values in loops:
+            (row,) = rows[(rows.controller == controller) & (rows.reference == reference)].index
+            assert table.at[row, "rmse.yaw_rate"] == values["rmse"]["yaw_rate"]
+            assert table.at[row, "solve_time_ms.p99"] == values["solve_time_ms"]["p99"]
+            assert table.at[row, "horizon"] == "10/7" and table.at[row, "mode"] == "states"
+            assert table.at[row, "learner"] == run.learner and table.at[row, "seed"] == run.seed
+        (episode,) = run.metrics["data"]["split"]["test"]
+        column = f"prediction.{episode}.rmse.vx"
+        assert (rows[column] == run.metrics["prediction"][episode]["rmse"]["vx"]).all()
+    # One query of the kind the docs show: the mean over seeds, per learner and controller.
+    means = table.dropna(subset=["controller"]).groupby(["learner", "controller"])["rmse.vx"]
+    assert set(means.mean().index.get_level_values("learner")) == {"edmd", "elm_edmd"}
+    with pytest.raises(ValueError, match="holds no Hydra job directories"):
+        load(tiny_sweep / "report")

@@ -1,5 +1,8 @@
 """``python -m harness.report SWEEP_DIR``: the paper's tables and figures from a sweep.
 
+For a query of your own, :func:`load` (``harness/report/frame.py``) returns the same runs as one
+pandas table, a row per job × controller × reference, every metric a column.
+
 Every job directory of a Hydra multirun is read into a run (``jobs.py``: the learner, plant and
 controller Hydra chose for it, its seed, its overrides, and its metrics or error); the runs make
 the tables (``tables.py``; numbers are mean ± std over the runs that differ only by seed, and any
@@ -37,12 +40,13 @@ from omegaconf import DictConfig
 
 from harness.core.files import remove_stale_temporaries, try_lock, umask, write_text_atomic
 from harness.report.figures import figures
+from harness.report.frame import load
 from harness.report.jobs import HYDRA_FILE, Run, read_runs
 from harness.report.tables import Table, tables
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Run", "Table", "WriteReport", "main", "read_runs", "report"]
+__all__ = ["Run", "Table", "WriteReport", "load", "main", "read_runs", "report"]
 
 
 REPORT_LOCK = ".report.lock"  # in the sweep directory: one report of a sweep at a time
