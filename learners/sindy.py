@@ -5,7 +5,7 @@ model of the step, x_n⁺ = x_n + Ξᵀ θ(x_n, v), from every one-step pair of 
 box: 2y − 1) up to ``degree``, the constant included: at degree 2 with three states and two
 inputs, 21 terms, the vx·r and steering·vx products of the single-track equations among them.
 Degree 3 (56 terms) fits the one-step pairs better but its whole-drive rollouts diverge on
-``data=default`` (every threshold; degree 2 does not: README, *Learners*). Ξ is fitted by
+``data=default`` (every threshold; degree 2 does not: docs/guide/learners.md). Ξ is fitted by
 sequentially thresholded ridge least squares (STLSQ): fit, drop every term whose coefficient is
 small (relative to its column's and its state's RMS), refit on the rest, until the terms stop
 changing. The threshold is chosen from a list by the validation drives' open-loop rollouts, as

@@ -83,7 +83,7 @@ MANIFEST_CHECKSUM = "manifest_sha256"
 # memory when loaded, hours of collection (data=paper has at most 1.6e6).
 MAX_TOTAL_STEPS = 100_000_000
 BYTES_PER_STEP = 9 * 8  # time, 3 states, 2 inputs, 3 poses as float64
-STEPS_PER_SECOND = 10_000  # one collection process (README, bench/collect_throughput.py)
+STEPS_PER_SECOND = 10_000  # one collection process (bench/collect_throughput.py)
 _NOT_WRITABLE = (errno.EACCES, errno.EPERM, errno.EROFS)
 _FULL = (errno.ENOSPC, errno.EDQUOT)
 
