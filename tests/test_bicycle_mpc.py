@@ -14,7 +14,7 @@ from hydra.utils import instantiate
 
 from controllers import BicycleMPCConfig
 from harness.core.episode import MinMaxNormalizer
-from tests.test_config import compose_config
+from tests.helpers import compose
 from tests.test_single_track import drives, known_model
 
 
@@ -40,6 +40,6 @@ def test_the_pipelines_controllers_all_weigh_vy_as_the_dataclass() -> None:
     """The pipeline builds every controller from its YAML: the baseline and the learners' DE-MPC
     weigh the states alike (a fair comparison), vy at 1 %."""
     for name in ("bicycle_mpc", "bicycle_mpc_long", "de_mpc", "de_mpc_long"):
-        config = instantiate(compose_config(f"controller={name}").controller)
+        config = instantiate(compose(f"controller={name}").controller)
         np.testing.assert_array_equal(config.weights()[0], BicycleMPCConfig().weights()[0])
         assert config.weights()[0][1, 1] < 0.1 * config.weights()[0][2, 2]

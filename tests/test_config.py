@@ -126,7 +126,10 @@ def test_a_wrong_type_or_an_unknown_key_fails_at_composition_naming_the_key(
         ("+plant.tire.grip=1", "unknown key plant.tire.grip; known keys: road_friction,"),
         ("data.split.train=2", "data.split counts sum to 6, not data.episodes (12)"),
         ("data.min_steps=5000", "data.min_steps (5000) must be >= 10 and <= data.max_steps"),
-        ("data.driver.lateral_weights=[1,2]", "data.driver.lateral_weights needs 6 weights"),
+        (
+            "data.driver.lateral_weights=[1,2]",
+            "data.driver.lateral_weights must be 6 weights with a positive sum",
+        ),
         ("data.driver.steer_rate_deg_per_s=-1", "data.driver.steer_rate_deg_per_s must be"),
         ("experiment=generalization", None),  # the other plants are checked as well ...
     ],

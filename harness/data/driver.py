@@ -27,6 +27,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from harness.core.checks import non_negative, require, shown
 from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 from harness.plant.params import SedanParams
 
@@ -86,24 +87,31 @@ class DriverConfig:
             if isinstance(value, list):  # the schema hands sequences over as lists
                 value = tuple(value)
                 setattr(self, f.name, value)
-            values = value if isinstance(value, tuple) else (value,)
-            if any(not math.isfinite(v) or v < 0 for v in values):
-                raise ValueError(f"data.driver.{f.name} must be finite and >= 0 (got {value})")
+            for number in value if isinstance(value, tuple) else (value,):
+                non_negative(f"data.driver.{f.name}", number)
         for name, count in (("lateral_weights", 6), ("longitudinal_weights", 3)):
             weights = getattr(self, name)
-            if len(weights) != count or sum(weights) <= 0:
-                raise ValueError(f"data.driver.{name} needs {count} weights with a positive sum")
+            require(
+                len(weights) == count and sum(weights) > 0,
+                f"data.driver.{name}",
+                f"{count} weights with a positive sum",
+                list(weights),
+            )
         for name in ("segment_duration_s", "corner_grip_fraction", "slalom_frequency_hz"):
             bounds = getattr(self, name)
-            if len(bounds) != 2 or not 0 < bounds[0] <= bounds[1]:
-                raise ValueError(f"data.driver.{name} must be [low, high] with 0 < low <= high")
-        if not self.max_speed_mps > 3:
-            raise ValueError(f"data.driver.max_speed_mps must be > 3 (got {self.max_speed_mps})")
-        if not self.recovery_exit_sideslip_deg < self.recovery_sideslip_deg:
-            raise ValueError(
-                f"data.driver.recovery_exit_sideslip_deg ({self.recovery_exit_sideslip_deg}) must "
-                f"be below data.driver.recovery_sideslip_deg ({self.recovery_sideslip_deg})"
+            require(
+                len(bounds) == 2 and 0 < bounds[0] <= bounds[1],
+                f"data.driver.{name}",
+                "[low, high] with 0 < low <= high",
+                list(bounds),
             )
+        require(self.max_speed_mps > 3, "data.driver.max_speed_mps", "> 3", self.max_speed_mps)
+        require(
+            self.recovery_exit_sideslip_deg < self.recovery_sideslip_deg,
+            "data.driver.recovery_exit_sideslip_deg",
+            f"below data.driver.recovery_sideslip_deg ({shown(self.recovery_sideslip_deg)})",
+            self.recovery_exit_sideslip_deg,
+        )
 
 
 class SyntheticDriver:

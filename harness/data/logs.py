@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.core.checks import integer, positive
 from harness.core.contracts import STATE_NAMES
 from harness.core.episode import POSE_NAMES, Episode, InputChannel, MinMaxNormalizer
 from harness.core.files import write_atomic
@@ -129,17 +130,10 @@ class LogsConfig:
         if (self.time is None) == (self.period_s is None):
             raise ValueError("data: give either data.time (a time column) or data.period_s")
         for key in ("period_s", "model_period_s"):
-            value = getattr(self, key)
-            if value is not None and not (
-                isinstance(value, int | float) and math.isfinite(value) and value > 0
-            ):
-                raise ValueError(f"data.{key} must be a number > 0 (got {value!r})")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"data.seed must be an integer >= 0 (got {self.seed!r})")
-        if isinstance(self.record_every, bool) or not isinstance(self.record_every, int):
-            raise ValueError(f"data.record_every must be an integer (got {self.record_every!r})")
-        if self.record_every < 1:
-            raise ValueError("data.record_every must be >= 1")
+            if getattr(self, key) is not None:
+                positive(f"data.{key}", getattr(self, key))
+        self.seed = integer("data.seed", self.seed, 0)
+        self.record_every = integer("data.record_every", self.record_every)
         _check_split(self.split)
 
     @property
