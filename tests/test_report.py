@@ -416,3 +416,24 @@ def test_load_gives_one_row_per_job_controller_and_reference_with_every_metric(
     assert set(means.mean().index.get_level_values("learner")) == {"edmd", "elm_edmd"}
     with pytest.raises(ValueError, match="holds no Hydra job directories"):
         load(tiny_sweep / "report")
+
+
+def test_load_gives_the_closed_loops_on_other_plants_rows_of_their_own(
+    tiny_sweep: Path, tmp_path: Path
+) -> None:
+    """experiment=generalization tracks on sedan_wet too (``generalization.<plant>.tracking``):
+    those runs are rows whose plant is the one driven, not columns of the dry rows."""
+    job = next(run.path for run in read_runs(tiny_sweep) if run.metrics is not None)
+    copy = tmp_path / job.name
+    shutil.copytree(job, copy)
+    metrics = json.loads((copy / "metrics.json").read_text())
+    wet = json.loads(json.dumps(metrics["tracking"]))  # the same numbers, said of sedan_wet
+    wet["controllers"]["de_mpc"][next(iter(wet["controllers"]["de_mpc"]))]["rmse"]["vx"] = 9.0
+    metrics["generalization"] = {"sedan_wet": {"tracking": wet, "prediction": {"x": 1.0}}}
+    (copy / "metrics.json").write_text(json.dumps(metrics))
+    table = load(copy)
+    dry, other = table[table.plant == "sedan"], table[table.plant == "sedan_wet"]
+    assert len(dry) == len(other) > 0
+    assert (other[other.controller == "de_mpc"]["rmse.vx"] == 9.0).all()
+    assert (dry["generalization.sedan_wet.prediction.x"] == 1.0).all()
+    assert not any(column.startswith("generalization.sedan_wet.tracking") for column in table)

@@ -1,9 +1,11 @@
 """A sweep's results as one pandas table: :func:`load`, for queries the report does not make.
 
-One row per job × controller × reference (a job that tracked nothing, on a user's logs, or that
-failed: one row, its controller and reference empty). The columns name the row first (``job``,
-``learner``, ``seed``, ``plant``, ``data``, ``variant``, ``controller``, ``reference``, ``Np``,
-``Nc``, ``horizon``, ``mode``, ``offset_free``, ``compute_delay``, ``error``), then every number
+One row per job × plant × controller × reference (a job that tracked nothing, on a user's logs,
+or that failed: one row, its controller and reference empty); ``experiment=generalization``'s
+closed loops on the other plants are rows of their own, ``plant`` naming the one driven. The
+columns name the row first (``job``, ``learner``, ``seed``, ``plant``, ``data``, ``variant``,
+``controller``, ``reference``, ``Np``, ``Nc``, ``horizon``, ``mode``, ``offset_free``,
+``compute_delay``, ``error``), then every number
 of the closed-loop run flattened with dots (``rmse.vx``, ``solve_time_ms.p99``,
 ``path.max_lateral_deviation_m``), then every other section of the job's ``metrics.json``
 flattened the same way (``prediction.episode_0000.rmse.vx``, ``training.fit_time_s``),
@@ -70,16 +72,30 @@ def load(path: str | Path) -> pd.DataFrame:
         }
         metrics = dict(run.metrics or {})
         tracking = metrics.pop("tracking", None) or {}
+        # experiment=generalization: the same controllers on other plants, a row per plant.
+        elsewhere = {
+            plant: section["tracking"]
+            for plant, section in (metrics.get("generalization") or {}).items()
+            if isinstance(section, Mapping) and isinstance(section.get("tracking"), Mapping)
+        }
+        if elsewhere:
+            metrics["generalization"] = {
+                plant: {k: v for k, v in section.items() if k != "tracking"}
+                for plant, section in metrics["generalization"].items()
+            }
         sections = flatten(metrics)
-        closed_loops = list(_closed_loops(run, tracking))
+        closed_loops = [(run.plant, *loop) for loop in _closed_loops(run, tracking)]
+        for plant, other in elsewhere.items():
+            closed_loops += [(plant, *loop) for loop in _closed_loops(run, other)]
         if not closed_loops:
             rows.append({**job, "controller": None, "reference": None, **sections})
-        for controller, reference, settings, values in closed_loops:
+        for plant, controller, reference, settings, values in closed_loops:
             horizon = values.get("horizon") or {}
             Np, Nc = horizon.get("Np"), horizon.get("Nc")
             rows.append(
                 {
                     **job,
+                    "plant": plant,
                     "controller": controller,
                     "reference": reference,
                     "Np": Np,
