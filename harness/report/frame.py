@@ -134,10 +134,9 @@ def _closed_loops(
 def _controller_settings(run: Run) -> dict[str, Mapping[str, Any]]:
     """Each controller's composed settings, by its name in ``tracking.controllers``: the run's
     own (named by its Hydra choice) and every ``task.extra_controllers`` entry."""
-    config_file = run.path / ".hydra" / "config.yaml"
-    if not config_file.is_file():
+    config = run.config
+    if not isinstance(config, DictConfig):
         return {}
-    config = OmegaConf.load(config_file)
     found: dict[str, Mapping[str, Any]] = {}
     own = OmegaConf.select(config, "controller")
     if isinstance(own, DictConfig):

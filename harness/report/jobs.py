@@ -60,6 +60,7 @@ class Run:
     seed: int = 0
     metrics: dict[str, Any] | None = None
     error: str | None = None
+    config: Any = None  # its composed config as Hydra saved it (.hydra/config.yaml), unresolved
 
     @property
     def name(self) -> str:
@@ -121,6 +122,7 @@ def read_run(directory: Path) -> Run:
             choices={str(k): None if v is None else str(v) for k, v in choices.items()},
             overrides=parse_overrides(OmegaConf.to_container(hydra.overrides.task)),
             seed=int(config.get("seed", 0)),
+            config=config,
         )
     except Exception as error:  # YAML, OmegaConf or override syntax: any damage to .hydra/
         message = f"{type(error).__name__}: {error}".splitlines()[0]
