@@ -337,10 +337,8 @@ class CondensedQP:
         assert factor is not None  # _ensure_daqp built it
         f = np.zeros(M + 1)  # ε_u = 0
         f[:M] = -dtrmv(factor, x_u[:M], lower=1, trans=1)  # L⁻¹c = -Lᵀx_u
-        b = self._daqp_upper.copy()  # b of G x <= b: only the input rows move with v_{t-1}
-        held = np.tile(v_prev, self.Nc)
-        b[2 * M : 3 * M] -= held
-        b[3 * M : 4 * M] += held
+        # b of G x <= b: only the input rows move with v_{t-1} (-v_{t-1} and +v_{t-1}).
+        b = self._daqp_upper + self._daqp_shift @ v_prev
         if self._daqp is None:
             self._daqp = self._daqp_setup(f, b)
             if self._daqp is None:
@@ -391,6 +389,10 @@ class CondensedQP:
         self._daqp_identity = np.eye(M + 1)
         self._daqp_lower = np.full(self.rows, -np.inf)  # one-sided rows G x <= b
         self._daqp_upper = -self.residual(np.zeros(M + 1), np.zeros(self.m))  # b at v_{t-1} = 0
+        shift = np.zeros((self.rows, self.m))
+        held = np.tile(np.eye(self.m), (self.Nc, 1))  # row k·m + j picks v_{t-1}[j]
+        shift[2 * M : 3 * M], shift[3 * M : 4 * M] = -held, held
+        self._daqp_shift = shift
         self._daqp_rows_new = True
         self._daqp_rows_ready = True
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -394,13 +395,15 @@ class DEMPC:
                 solution.status,
             )
         self._v_prev = plan[0]
+        u = np.clip(self.normalizer.inputs_inverse(plan[0]), self.u_min, self.u_max)
+        # The input is ready: the rest is bookkeeping for the next step and the record, work of
+        # the period after the input is sent (the harness times the feedback phase to here).
+        ready = time.perf_counter()
         if w is not None:
             # The next measurement's prediction: under delay, the state the plan started from.
             self._z_expected = z if self.delay_steps else self._model_step(z, plan[0]) + w
         self._last = _Last(z, plan[0], w, x, pose, t)
-        # The whole plan converts at the cost of its first move (elementwise, same bits).
-        planned_inputs = self.normalizer.inputs_inverse(plan)
-        u = np.clip(planned_inputs[0], self.u_min, self.u_max)
+        planned_inputs = self.normalizer.inputs_inverse(plan)  # elementwise: row 0 is u's bits
         predicted = qp.predict(z, v_prev, dv)[:, :STATES] + shift.reshape(self.Np, -1)[:, :STATES]
         self._predicted_rows = predicted if solution.ok else None
         if self.delay_steps:  # row i is i + 1 steps after the measurement, with or without delay
@@ -411,6 +414,7 @@ class DEMPC:
             solve_path=solution.path,
             fallback=not solution.ok,
             follows_path=self.follows_path,
+            input_ready_s=ready,
         )
         return u, info
 

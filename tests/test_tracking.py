@@ -9,6 +9,7 @@ import pytest
 from matplotlib.figure import Figure
 
 from controllers import DEMPC, DEMPCConfig
+from harness.core.contracts import StepInfo
 from harness.core.episode import Episode
 from harness.evaluation import tracking
 from harness.evaluation.tracking import TrackingTrajectory, predicted_path, track
@@ -172,6 +173,59 @@ def test_a_tracking_run_reports_records_and_plots(tmp_path: Path, monkeypatch) -
         np.testing.assert_array_equal(applied.get_ydata(), run.inputs[:, j])
     assert [t.get_text() for t in axes[0].get_legend().get_texts()] == ["reference", "dlc"]
     assert (tmp_path / "tracking.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+class Clock:
+    """A clock the controller below moves: time.perf_counter for the tracking loop."""
+
+    now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class TimedController:
+    """Holds its input; each step prepares for 4 ms, computes the input in 1 ms, says when it
+    was ready, then keeps books for 2 ms."""
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+
+    def reset(self, reference: np.ndarray, *, path=None, u_prev=None) -> None:
+        pass
+
+    def prepare(self) -> None:
+        self.clock.now += 0.004
+
+    def act(self, x: np.ndarray, t: float, *, pose=None):
+        self.clock.now += 0.001
+        ready = self.clock.now
+        self.clock.now += 0.002
+        return np.zeros(2), StepInfo(input_ready_s=ready)
+
+
+def test_the_latency_ends_when_the_input_is_ready_and_the_rest_counts_in_the_period(
+    monkeypatch,
+) -> None:
+    """solve_time_ms is measurement to input (1 ms); the preparation and the bookkeeping after
+    the input (4 + 2 ms) are the step's other work, and all of it (7 ms) must fit the period."""
+    clock = Clock()
+    monkeypatch.setattr(tracking.time, "perf_counter", clock)
+    model = linear_model()
+    reference = feasible_reference(model, steps=50)
+    plant = ModelPlant(model, x0=reference[0])
+    metrics, _ = track(plant, TimedController(clock), reference, name="t", recorder=Recorder())
+    for key, expected_ms in (
+        ("solve_time_ms", 1.0),
+        ("prepare_time_ms", 6.0),
+        ("step_time_ms", 7.0),
+    ):
+        for statistic in ("median", "p99", "max"):
+            assert metrics[key][statistic] == pytest.approx(expected_ms, abs=1e-6)
+    assert metrics["deadline_misses"] == 0
+    plant.dt = 0.005  # the same work no longer fits a 5 ms period: every step misses it
+    metrics, _ = track(plant, TimedController(clock), reference, name="t", recorder=Recorder())
+    assert metrics["deadline_misses"] == metrics["steps"] == 49
 
 
 def test_a_run_writes_a_rerun_recording(tmp_path: Path) -> None:

@@ -195,7 +195,10 @@ class StepInfo:
     itself in physical units; ``solve_path``: which solver answered (DE-MPC: unconstrained,
     active_set, piqp, failed); ``fallback``: the solve failed and a previous plan's move was
     applied instead; ``follows_path``: the step steered by the run's path (lateral and heading
-    error), not by the reference's states.
+    error), not by the reference's states; ``input_ready_s``: ``time.perf_counter()`` when the
+    input was ready, if the controller says (what ``act`` did after it, such as converting the
+    horizon above for the record, is work of the period after the input is sent, not latency
+    from the measurement to the input).
     """
 
     predicted_states: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -203,6 +206,7 @@ class StepInfo:
     solve_path: str = "n/a"
     fallback: bool = False
     follows_path: bool = False
+    input_ready_s: float | None = None
 
 
 @runtime_checkable

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -149,26 +150,41 @@ class MinMaxNormalizer:
     def input_names(self) -> tuple[str, ...]:
         return tuple(channel.name for channel in self.channels)
 
-    def _span(self, low: np.ndarray, high: np.ndarray) -> np.ndarray:
-        return np.where(high - low > 1e-12, high - low, 1.0)
+    # Derived once (a controller converts every step): the spans, and each input's gains.
+    @functools.cached_property
+    def _state_span(self) -> np.ndarray:
+        return _span(self.state_min, self.state_max)
+
+    @functools.cached_property
+    def _input_span(self) -> np.ndarray:
+        return _span(self.input_min, self.input_max)
+
+    @functools.cached_property
+    def _gains(self) -> tuple[np.ndarray, np.ndarray]:
+        return (
+            np.array([c.gain_positive for c in self.channels], dtype=float),
+            np.array([c.gain_negative for c in self.channels], dtype=float),
+        )
 
     def states(self, x: np.ndarray) -> np.ndarray:
-        return (np.asarray(x) - self.state_min) / self._span(self.state_min, self.state_max)
+        return (np.asarray(x) - self.state_min) / self._state_span
 
     def states_inverse(self, z: np.ndarray) -> np.ndarray:
-        return np.asarray(z) * self._span(self.state_min, self.state_max) + self.state_min
+        return np.asarray(z) * self._state_span + self.state_min
 
     def input_features(self, u: np.ndarray) -> np.ndarray:
         """The inputs ``u`` (..., m) in the units the models are fitted in (before min-max)."""
         return input_features(u, self.channels)
 
     def inputs(self, u: np.ndarray) -> np.ndarray:
-        span = self._span(self.input_min, self.input_max)
-        return (self.input_features(u) - self.input_min) / span
+        return (self.input_features(u) - self.input_min) / self._input_span
 
     def inputs_inverse(self, v: np.ndarray) -> np.ndarray:
-        features = np.asarray(v) * self._span(self.input_min, self.input_max) + self.input_min
-        return np.stack([c.value(features[..., j]) for j, c in enumerate(self.channels)], axis=-1)
+        """Physical inputs of normalized ``v`` (..., m): :meth:`InputChannel.value` of every
+        column at once (the same division, the same bits)."""
+        features = np.asarray(v, dtype=float) * self._input_span + self.input_min
+        positive, negative = self._gains
+        return features / np.where(features >= 0, positive, negative)
 
     def to_dict(self) -> dict[str, Any]:
         values: dict[str, Any] = {k: np.asarray(getattr(self, k)).tolist() for k in _RANGES}
@@ -194,6 +210,11 @@ class MinMaxNormalizer:
 
 
 _RANGES = ("state_min", "state_max", "input_min", "input_max")
+
+
+def _span(low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """high - low, 1 where a column never varied (it maps to 0 rather than dividing by 0)."""
+    return np.where(high - low > 1e-12, high - low, 1.0)
 
 
 def input_features(u: np.ndarray, channels: Sequence[InputChannel]) -> np.ndarray:
