@@ -56,7 +56,7 @@ CONTROLLERS: dict[str, tuple[str, dict[str, Any]]] = {
     "deep_edmd": ("deep_edmd", {}),
     "bilinear_edmd": ("bilinear_edmd", {}),
     "input_edmd": ("input_edmd", {}),
-    "dnn": ("dnn", {"sqp_iterations": 2}),
+    "dnn": ("dnn", {"sqp_iterations": 2, "linearization": "predicted"}),  # as dnn_mpc.yaml
     "bicycle_mpc": ("single_track", {}),
 }
 _TRAINING = [

@@ -24,7 +24,7 @@ from typing import Any, TypeVar
 from hydra.core.config_store import ConfigStore
 from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from controllers import BicycleMPCConfig, DEMPCConfig
 from harness.core.checks import is_number
@@ -105,10 +105,23 @@ def validate(cfg: DictConfig) -> None:
     2. every other ``_target_`` node but the task itself is built (cheap: learners build their
        networks in ``fit``, controllers are settings until given a model);
     3. every control period the task uses equals ``plant.control_period_s``.
+
+    An extra controller named as the run's controller (``controller=de_mpc`` beside the
+    pipeline's extra ``de_mpc``) is the run's controller: it is removed first, so that it runs
+    once, with the run's settings.
     """
+    _drop_extra_named_as_the_run_controller(cfg)
     _validate(cfg, path="", in_schema=False)
     _build_targets(cfg, path="")
     _check_periods(cfg)
+
+
+def _drop_extra_named_as_the_run_controller(cfg: DictConfig) -> None:
+    name = OmegaConf.select(cfg, "hydra.runtime.choices.controller")
+    extras = OmegaConf.select(cfg, "task.extra_controllers")
+    if isinstance(name, str) and isinstance(extras, DictConfig) and name in extras:
+        with open_dict(extras):
+            extras.pop(name)
 
 
 def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None:

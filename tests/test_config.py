@@ -168,6 +168,8 @@ def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_h
     assert (cfg.controller.Np, cfg.controller.Nc) == (10, 7)
     long = cfg.task.extra_controllers.de_mpc_long
     assert (long.Np, long.Nc) == (60, 50)
+    main_job = cfg.task.extra_controllers.de_mpc_path_long_offset_free  # the main job's, beside
+    assert (main_job.Np, main_job.reference, main_job.offset_free) == (60, "path", True)
 
 
 def test_random_layer_learners_are_their_base_learner_with_the_layer_on() -> None:

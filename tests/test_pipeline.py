@@ -22,6 +22,10 @@ TINY = [
     "data.start_speed_mps=[0,0]",  # from rest: the drives barely move (the baseline says so)
     "recorder=none",
     "~reference@task.references.double_lane_change",  # the test drive only
+    # The paper's short controller as the run's, with its baseline (the default's 60/50 path
+    # follower has its own tests); the extras named like it would be it, run once.
+    "controller=de_mpc",
+    "~controller@task.extra_controllers.bicycle_mpc_path_long_offset_free",
     # Path followers track states where there is no course: the same run twice here; offset-free
     # tracking has its own tests.
     "~controller@task.extra_controllers.de_mpc_offset_free",

@@ -98,8 +98,12 @@ def build_as_the_app(*overrides: str) -> None:
             ["controller.dt=0.02"],
             "controller.dt (0.02) must equal plant.control_period_s (0.01)",
         ),
-        (
+        (  # the run's controller steps at the plant's period; the paper's beside it at 10 ms
             ["plant.control_period_s=0.02"],
+            "task.extra_controllers.de_mpc.dt (0.01) must equal plant.control_period_s (0.02)",
+        ),
+        (
+            ["controller=de_mpc", "plant.control_period_s=0.02"],
             "controller.dt (0.01) must equal plant.control_period_s (0.02)",
         ),
         (
@@ -159,7 +163,8 @@ def test_every_part_of_the_config_is_checked_before_the_first_episode(
 
 def test_a_period_check_applies_only_to_what_the_task_uses() -> None:
     build_as_the_app("task=characterize", "plant.control_period_s=0.02")  # no controller used
-    build_as_the_app("controller.dt=0.02", "plant.control_period_s=0.02")  # both agree
+    # Both agree; the paper's de_mpc is the run's controller, not a second one at 10 ms.
+    build_as_the_app("controller=de_mpc", "controller.dt=0.02", "plant.control_period_s=0.02")
 
 
 def run_harness(tmp: Path, *overrides: str) -> tuple[subprocess.CompletedProcess, float]:

@@ -15,6 +15,7 @@ import pytest
 from harness.core.files import try_lock
 from harness.report import Run, load, main, read_runs, report
 from harness.report.figures import loss_figure
+from harness.report.summary import summary
 from harness.report.tables import (
     course_speed_table,
     course_table,
@@ -437,3 +438,49 @@ def test_load_gives_the_closed_loops_on_other_plants_rows_of_their_own(
     assert (other[other.controller == "de_mpc"]["rmse.vx"] == 9.0).all()
     assert (dry["generalization.sedan_wet.prediction.x"] == 1.0).all()
     assert not any(column.startswith("generalization.sedan_wet.tracking") for column in table)
+
+
+def test_a_runs_summary_says_per_controller_whether_the_lane_change_passed() -> None:
+    """One line per test drive (with persistence beside it), one per controller (the run's
+    first): the course's verdict, deviation and cones, a test drive's tracking RMSE, the step."""
+    run = {
+        "rmse": {"vx": 0.05, "vy": 0.02, "yaw_rate": 0.01},
+        "step_time_ms": {"median": 1.0, "p99": 2.5, "max": 3.0},
+        "deadline_misses": 0,
+        "horizon": {"Np": 60, "Nc": 50},
+    }
+    course = {
+        **run,
+        "deadline_misses": 3,
+        "path": {
+            "passed": False,
+            "max_lateral_deviation_m": 0.41,
+            "cones_hit": 2,
+            "reference_speed_mps": 22.222,
+        },
+    }
+    metrics = {
+        "prediction": {
+            "episode_0000": {"rmse": {"vx": 0.5, "vy": 0.05, "yaw_rate": 0.02}, "diverged": False},
+            "persistence": {"episode_0000": {"rmse": {"vx": 6.0, "vy": 0.3, "yaw_rate": 0.3}}},
+        },
+        "tracking": {
+            "controllers": {
+                "main": {"test_episode/episode_0000": run, "double_lane_change": course},
+                "beside": {"skipped": "no model"},
+            }
+        },
+    }
+    lines = summary(metrics, "edmd, seed 0:").splitlines()
+    assert lines[0] == "edmd, seed 0:"
+    assert lines[1] == (
+        "  test drive episode_0000, open loop RMSE vx / vy / r: 0.5 / 0.05 / 0.02;"
+        " persistence 6 / 0.3 / 0.3"
+    )
+    assert lines[2] == (
+        "  main 60/50, the run's controller: test_episode/episode_0000 tracked, RMSE"
+        " 0.05 / 0.02 / 0.01; double_lane_change at 80 km/h FAILED, 0.41 m, 2 cones,"
+        " 3 deadline misses; step 1.00 / 2.50 ms (median / p99)"
+    )
+    assert lines[3] == "  beside: skipped (no model)"
+    assert len(lines) == 4

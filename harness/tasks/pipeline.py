@@ -93,6 +93,9 @@ class Pipeline:
         self.learner, self.learner_name = learner, learner_name
         self.controllers = {controller_name: controller} if controller is not None else {}
         for name, make in (extra_controllers or {}).items():
+            if name in self.controllers:  # controller=de_mpc beside the default extra de_mpc
+                log.info("task.extra_controllers.%s is the run's controller: run once", name)
+                continue
             if not isinstance(make, ControllerFactory):
                 raise ValueError(
                     f"task.extra_controllers.{name} must be a controller config (conf/controller/)"

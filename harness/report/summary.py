@@ -1,0 +1,80 @@
+"""What a run ends by printing: the model's test drives, then one line per controller.
+
+``summary(metrics)`` reads only the run's ``metrics.json`` sections (the public contract), so the
+lines say what the file says:
+
+- the open-loop prediction of each test drive (RMSE vx m/s / vy m/s / yaw rate rad/s), with
+  persistence (the state held) beside it, the bar every model must clear;
+- per controller, the run's first: every course (the lane change): passed or failed, the largest
+  lateral deviation from the centre line and the cones hit; every test-drive reference: the
+  tracking RMSE; the step's time on its first reference (median / p99, ms) and deadline misses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+STATES = ("vx", "vy", "yaw_rate")
+
+
+def summary(metrics: Mapping[str, Any], title: str = "") -> str:
+    """The lines to print at the end of a pipeline run (empty without prediction or tracking)."""
+    lines = [title] if title else []
+    lines += _prediction_lines(metrics.get("prediction") or {})
+    tracking = metrics.get("tracking") or {}
+    controllers = tracking.get("controllers") or {}
+    if tracking.get("skipped") and not controllers:
+        lines.append(f"  tracking skipped: {tracking['skipped']}")
+    for index, (name, runs) in enumerate(controllers.items()):
+        first = next(iter(runs.values()), None) if "skipped" not in runs else None
+        horizon = first.get("horizon") if isinstance(first, Mapping) else None
+        label = name if horizon is None else f"{name} {horizon['Np']}/{horizon['Nc']}"
+        label += ", the run's controller" if index == 0 else ""
+        lines.append(f"  {label}: {_controller_line(runs)}")
+    return "\n".join(lines)
+
+
+def _rmse(values: Mapping[str, Any]) -> str:
+    return " / ".join(f"{float(values[state]):.3g}" for state in STATES)
+
+
+def _prediction_lines(prediction: Mapping[str, Any]) -> list[str]:
+    persistence = prediction.get("persistence") or {}
+    lines = []
+    for episode, result in prediction.items():
+        if not isinstance(result, Mapping) or "rmse" not in result:
+            continue
+        line = f"  test drive {episode}, open loop RMSE vx / vy / r: {_rmse(result['rmse'])}"
+        if result.get("diverged"):
+            line += " (diverged)"
+        held = persistence.get(episode)
+        if isinstance(held, Mapping) and "rmse" in held:
+            line += f"; persistence {_rmse(held['rmse'])}"
+        lines.append(line)
+    return lines
+
+
+def _controller_line(runs: Mapping[str, Any]) -> str:
+    if "skipped" in runs:
+        return f"skipped ({runs['skipped']})"
+    parts = []
+    step = None
+    for label, run in runs.items():
+        path = run.get("path")
+        if path is not None:
+            verdict = "passed" if path["passed"] else "FAILED"
+            speed_kph = 3.6 * float(path.get("reference_speed_mps", float("nan")))
+            parts.append(
+                f"{label} at {speed_kph:.0f} km/h {verdict}, "
+                f"{path['max_lateral_deviation_m']:.2f} m, {path['cones_hit']} cones"
+            )
+        else:
+            parts.append(f"{label} tracked, RMSE {_rmse(run['rmse'])}")
+        step = step or run.get("step_time_ms")
+        misses = run.get("deadline_misses", 0)
+        if misses:
+            parts[-1] += f", {misses} deadline misses"
+    if step:
+        parts.append(f"step {step['median']:.2f} / {step['p99']:.2f} ms (median / p99)")
+    return "; ".join(parts)
