@@ -145,7 +145,8 @@ def test_de_mpc_tracks_a_reference_the_dnn_can_drive_on_the_dnn_itself(
     plant = OwnModelPlant(dnn, x0)
     steer = u0[0] + 30.0 * np.sin(2 * np.pi * 0.5 * np.arange(120) * plant.dt)
     reference = np.array([x0, *(plant.step(np.array([s, u0[1]])) for s in steer[:-1])])
-    controller = DEMPC(dnn, DEMPCConfig(**horizons, sqp_iterations=2))
+    # As controller=dnn_mpc: two linearisations a step, along the plan.
+    controller = DEMPC(dnn, DEMPCConfig(**horizons, sqp_iterations=2, linearization="predicted"))
     assert isinstance(controller.qp, TimeVaryingQP)
     controller.reset(reference, u_prev=u0)  # from the input that drove the reference
     states, inputs = [plant.reset()], []

@@ -25,6 +25,7 @@ TINY = [
     # The paper's short controller as the run's, with its baseline (the default's 60/50 path
     # follower has its own tests); the extras named like it would be it, run once.
     "controller=de_mpc",
+    "~controller@task.extra_controllers.de_mpc",
     "~controller@task.extra_controllers.bicycle_mpc_path_long_offset_free",
     # Path followers track states where there is no course: the same run twice here; offset-free
     # tracking has its own tests.

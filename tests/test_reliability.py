@@ -435,3 +435,17 @@ def test_a_model_file_from_before_provenance_compares_its_normalizer_only(
     other = MinMaxNormalizer.fit(drive_episodes(3, duration_s=5.0)[2:])
     assert _reuse(edmd_file, tmp_path, caplog, other)["provenance"]["differs"] == ["normalizer"]
     assert "plant (not recorded), dataset (not recorded)" in caplog.records[0].getMessage()
+
+
+def test_an_extra_controller_named_as_the_runs_controller_runs_once_with_the_runs_settings() -> (
+    None
+):
+    """``controller=de_mpc controller.Np=20`` beside the pipeline's extra ``de_mpc``: one de_mpc,
+    the run's, with Np = 20 (not a second one at the defaults, nor the defaults in its place)."""
+    cfg = compose(*TINY, "controller=de_mpc", "controller.Np=20", as_app=True)
+    assert "de_mpc" in cfg.task.extra_controllers and "bicycle_mpc" in cfg.task.extra_controllers
+    validate(cfg)
+    assert (
+        "de_mpc" not in cfg.task.extra_controllers and "bicycle_mpc" in cfg.task.extra_controllers
+    )
+    assert cfg.controller.Np == 20

@@ -221,7 +221,9 @@ def test_more_sqp_iterations_plan_along_their_own_plan() -> None:
     x = np.array([20.0, 0.3, -0.1])
     infos = []
     for iterations in (1, 3):
-        controller = DEMPC(model, DEMPCConfig(Np=12, Nc=5, sqp_iterations=iterations))
+        controller = DEMPC(
+            model, DEMPCConfig(Np=12, Nc=5, sqp_iterations=iterations, linearization="plan")
+        )
         controller.reset(reference)
         _, info = controller.act(x, 0.0)
         infos.append(info)
