@@ -371,15 +371,17 @@ class DEMPC:
                 raise ValueError("a DE-MPC run that follows a path needs the car's pose in act()")
             qp = self.path_qp
             y_ref, where = self._path_reference(x, pose, y_ref)
-        if self.linearization is None and where is not None:
-            solution = self._solve_path_linear(z, v_prev, y_ref, w, where)
-        elif self.linearization is None:
-            if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
-                shift = self.qp.phi_w @ w
-                y_ref = y_ref - shift
-            solution = self.qp.solve(z, v_prev, y_ref)
-        else:
-            with single_threaded():  # small products: one BLAS thread is fastest (blas.py)
+        # Small products: one BLAS thread is fastest, for every model (blas.py; the main job's
+        # lifted-linear path follower at 60/50: p99 7.8-7.9 ms on two threads, 1.9-4.8 on one).
+        with single_threaded():
+            if self.linearization is None and where is not None:
+                solution = self._solve_path_linear(z, v_prev, y_ref, w, where)
+            elif self.linearization is None:
+                if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
+                    shift = self.qp.phi_w @ w
+                    y_ref = y_ref - shift
+                solution = self.qp.solve(z, v_prev, y_ref)
+            else:
                 if self._prepared is None:  # one phase: prepared along the measurement
                     self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
                 solution = self._feedback(self._prepared, z, v_prev, y_ref, w, where)
@@ -480,9 +482,10 @@ class DEMPC:
                 # that predicts speed badly would otherwise flip the band, and rebuild Θ twice,
                 # every step (the speed moves far less than a band in one period).
                 speed = float((x if self._last is None else self._last.x)[0])
-                self._path_theta(SPEED_BAND_MPS * round(speed / SPEED_BAND_MPS))
                 assert self.path_qp is not None
-                self.path_qp.prepare_solvers()
+                with single_threaded():
+                    self._path_theta(SPEED_BAND_MPS * round(speed / SPEED_BAND_MPS))
+                    self.path_qp.prepare_solvers()
             return
         k = min(round(t / self.dt) + self.delay_steps, self._reference_steps - 1)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
