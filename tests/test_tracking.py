@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -226,6 +227,17 @@ def test_the_latency_ends_when_the_input_is_ready_and_the_rest_counts_in_the_per
     plant.dt = 0.005  # the same work no longer fits a 5 ms period: every step misses it
     metrics, _ = track(plant, TimedController(clock), reference, name="t", recorder=Recorder())
     assert metrics["deadline_misses"] == metrics["steps"] == 49
+
+
+def test_de_mpc_says_when_its_input_was_ready_within_its_act() -> None:
+    model = linear_model()
+    reference = feasible_reference(model, steps=30)
+    controller = DEMPC(model, DEMPCConfig(Np=10, Nc=7))
+    controller.reset(reference)
+    before = time.perf_counter()
+    _, info = controller.act(reference[0], 0.0)
+    after = time.perf_counter()
+    assert info.input_ready_s is not None and before < info.input_ready_s < after
 
 
 def test_a_run_writes_a_rerun_recording(tmp_path: Path) -> None:
