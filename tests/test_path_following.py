@@ -153,3 +153,16 @@ def test_without_a_path_the_path_mode_tracks_states() -> None:
 def test_bad_path_settings_name_their_key(overrides: dict[str, object], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         DEMPCConfig(**overrides)  # type: ignore[arg-type]
+
+
+def test_the_path_kinematics_speed_keeps_its_band_until_the_speed_leaves_it() -> None:
+    """v̄ is the speed to 0.25 m/s, but a band is kept until the speed is 0.75 of a band from
+    it: a speed wavering at a band's edge (22.12 / 22.13 m/s) rebuilds the path QP once, not
+    every step; a real change of speed moves v̄ on, and a new run starts afresh."""
+    model = toy_linear_model()
+    controller = DEMPCConfig(Np=10, Nc=7, reference="path")(model, 0.01)
+    controller.reset(np.full((20, 3), [22.0, 0.0, 0.0]))
+    bands = [controller._speed_band(v) for v in (22.12, 22.13, 22.12, 22.3, 22.13, 22.05)]
+    assert bands == [22.0, 22.0, 22.0, 22.25, 22.25, 22.0]
+    controller.reset(np.full((20, 3), [22.0, 0.0, 0.0]))
+    assert controller._speed_band(22.13) == 22.25  # the nearest band, nothing held
