@@ -224,7 +224,7 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
         self, episodes: Sequence[Episode], varying: np.ndarray
     ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for e in episodes:
-            z = self.lift(e.states)
+            z = self._network_lift(e.states)
             v = self.normalizer_.inputs(e.inputs)
             for rows in row_chunks(z[:-1], 20_000):
                 yield bilinear_regression_rows(

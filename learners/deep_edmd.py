@@ -41,7 +41,15 @@ from harness.core.episode import Episode
 from learners.base import Dim, KoopmanLearner, Shape
 from learners.edmd import linear_rollout
 from learners.linalg import ridge_lstsq, row_chunks
-from learners.nets import Dense, LayerSpec, mlp_apply, mlp_backward, mlp_forward, mlp_specs
+from learners.nets import (
+    Dense,
+    LayerSpec,
+    NumpyMLP,
+    mlp_apply,
+    mlp_backward,
+    mlp_forward,
+    mlp_specs,
+)
 from learners.trained import TrainedLearner, check_loss_scales
 from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
 
@@ -405,6 +413,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         self.refit_koopman_lstsq = bool(refit_koopman_lstsq)
         self.loss_scales = check_loss_scales(loss_scales)
         self._random_layer_width = self.lifted_dim
+        self._encoder_np: NumpyMLP | None = None  # the trained encoder for lift (_for_control)
         self._hyperparameters = {
             "lifted_dim": self.lifted_dim,
             "horizon": self.horizon,
@@ -444,6 +453,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
     def _sync_for_rollout(self, train: Sequence[Episode]) -> None:
         """A_, B_ (C_) as the fitted model will have them; with the refit, by least squares on
         the lifted training data, leaving the trained A, B in the parameters untouched."""
+        self._encoder_np = None  # the encoder is training: lift through the network
         self._read_matrices(train)
         if self.refit_koopman_lstsq:
             theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
@@ -451,9 +461,17 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             self.A_, self.B_ = theta[:size].T.copy(), theta[size:].T.copy()
 
     def _after_training(self, train: Sequence[Episode]) -> None:
+        self._encoder_np = None
         if self.refit_koopman_lstsq:
             self.refit_koopman(train)
         self._read_matrices(train)
+        self._for_control()
+
+    def _for_control(self) -> None:
+        """The trained (nominal) encoder in float64 NumPy for :meth:`lift`: a controller lifts
+        every measurement, and one sample through torch costs ~0.3 ms against ~0.03 ms here."""
+        n = self.normalizer_.state_min.shape[0]
+        self._encoder_np = NumpyMLP(self.params_.layers("encoder"), n)
 
     def refit_koopman(self, train: Sequence[Episode]) -> DeepEDMD:
         """Replace A, B by the least-squares fit of z_{k+1} = A z_k + B u_k on the lifted
@@ -486,7 +504,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
 
     def _lifted_pairs(self, episodes: Sequence[Episode]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for e in episodes:
-            z = self.lift(e.states)
+            z = self._network_lift(e.states)
             v = self.normalizer_.inputs(e.inputs)
             for rows in row_chunks(z[:-1], 20_000):
                 yield np.hstack([z[:-1][rows], v[:-1][rows]]), z[1:][rows]
@@ -495,11 +513,21 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         self, episodes: Sequence[Episode]
     ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for e in episodes:
-            yield self.lift(e.states), self.normalizer_.states(e.states)
+            yield self._network_lift(e.states), self.normalizer_.states(e.states)
 
     # -- the Koopman contract ----------------------------------------------------------------------
 
     def lift(self, x: np.ndarray) -> np.ndarray:
+        encoder = self._encoder_np
+        if encoder is None:  # not trained yet, or training
+            return self._network_lift(x)
+        x_n = self.normalizer_.states(np.asarray(x, float))
+        phi = encoder(x_n, np.zeros((*x_n.shape[:-1], 0)))
+        return np.concatenate([x_n, phi], axis=-1) if self.lifted_includes_state else phi
+
+    def _network_lift(self, x: np.ndarray) -> np.ndarray:
+        """The lift as the network computes it (torch, float32): what the least-squares fits
+        (the refit, C, bilinear Deep EDMD's H) regress on, during training and after it alike."""
         x_n = torch.from_numpy(self.normalizer_.states(np.asarray(x, float)).astype(np.float32))
         with torch.inference_mode():
             return self._lift_n(x_n).double().numpy()
@@ -525,3 +553,4 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         super()._set_state(state)
         self.A_, self.B_, self.C_ = (state[k].double().numpy().copy() for k in "ABC")
+        self._for_control()

@@ -874,3 +874,28 @@ def test_loss_scales_of_the_wrong_length_fail_in_one_line(data: dict) -> None:
     with pytest.raises(ValueError, match=r"learner\.loss_scales has 2 entries") as info:
         learner.fit(data["train"], data["validation"], data["normalizer"])
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("cls", ["deep_edmd", "bilinear_deep_edmd"])
+@pytest.mark.parametrize("lifted_includes_state", [True, False])
+def test_a_trained_deep_edmd_lifts_for_control_as_its_network_does(
+    data: dict, tmp_path: Path, cls, lifted_includes_state: bool
+) -> None:
+    """``lift`` (what DE-MPC calls every step) runs the trained encoder in float64 NumPy; it is
+    the network's own lift (torch, float32) to float32's precision, after the fit and after a
+    load, for one state and a batch."""
+    from learners.bilinear_deep_edmd import BilinearDeepEDMD
+
+    kind = DeepEDMD if cls == "deep_edmd" else BilinearDeepEDMD
+    learner = small(kind, lifted_includes_state=lifted_includes_state)
+    learner.fit(data["train"], data["validation"], data["normalizer"])
+    loaded = load_learner(learner.save(tmp_path / "model.pt"))
+    states = data["validation"][0].states[::50]
+    with torch.inference_mode():
+        x_n = torch.from_numpy(learner.normalizer_.states(states).astype(np.float32))
+        by_network = learner._lift_n(x_n).double().numpy()
+    for model in (learner, loaded):
+        lifted = model.lift(states)
+        assert lifted.dtype == np.float64 and lifted.shape == by_network.shape
+        np.testing.assert_allclose(lifted, by_network, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(model.lift(states[3]), lifted[3], rtol=1e-12)
