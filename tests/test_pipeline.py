@@ -90,7 +90,14 @@ def test_metrics_follow_the_public_contract(edmd_run) -> None:
         assert (run_dir / figure).exists(), figure
     steps = metrics["prediction"]["step_response"]
     assert len(steps) == 8 and set(steps["steer+20deg_22mps"]) >= {"at_300ms", "at_1500ms"}
-    assert set(steps["throttle+0.1_10mps"]["at_300ms"]) == {"plant", "model", "relative_error"}
+    throttle = steps["throttle+0.1_10mps"]
+    assert set(throttle["at_300ms"]) == {"plant", "model", "relative_error", "model_input_effect"}
+    # The same step through the model as DE-MPC reads it (EDMD: its own rollout, C z), and
+    # whether each view's input effect has the plant's sign.
+    as_controlled = throttle["as_controlled"]
+    assert as_controlled["at_1500ms"]["model"] == pytest.approx(throttle["at_1500ms"]["model"])
+    assert isinstance(throttle["input_sign_agrees"], bool)
+    assert isinstance(as_controlled["input_sign_agrees"], bool)
     assert metrics["spectrum"]["max_abs_eigenvalue"] > 0
     assert isinstance(metrics["spectrum"]["unstable_modes"], list)
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.core.contracts import STATE_NAMES
 from harness.evaluation import step_response
 from harness.evaluation.step_response import DEFAULT_CASES, StepCase, respond
 from harness.output import load_arrays
@@ -36,11 +37,20 @@ class Oracle:
 
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         for run in self.runs:
-            if np.array_equal(run.states[run.first], x0) and np.array_equal(
-                run.inputs[run.first : -1], inputs
-            ):
+            if not np.array_equal(run.states[run.first], x0):
+                continue
+            if np.array_equal(run.inputs[run.first : -1], inputs):
                 return run.states[run.first :]
+            if np.all(inputs == run.inputs[run.first - 1]):  # held: the settled plant stays
+                return np.repeat(x0[None], len(inputs) + 1, 0)
         raise AssertionError("no plant run starts at this state under these inputs")
+
+
+class Mirrored(Oracle):
+    """The plant's response the wrong way round: an input gain of the wrong sign."""
+
+    def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        return 2 * x0 - super().predict(x0, inputs)
 
 
 class Holding:
@@ -176,3 +186,24 @@ def test_the_report_has_a_row_per_learner_and_case_and_leaves_the_steps_out_of_p
     assert spectral[5] == "abs λ 1.001000, doubles in 6.9 s, vx at A"
     (episode,) = prediction_table(jobs).rows
     assert episode[3] == "episode_0000"
+
+
+def test_the_input_effect_is_the_step_minus_the_held_prediction_and_its_sign_is_checked(
+    plant: Sedan,
+) -> None:
+    """The oracle's input effect is the plant's whole response (the settled plant does not
+    drift), with the plant's sign; a model that responds the wrong way, or not at all, does not
+    agree in sign."""
+    oracle, mirrored = Oracle(plant), Mirrored(plant)
+    models = {"oracle": oracle, "mirrored": mirrored, "holding": Holding()}
+    results = step_response.evaluate(models, plant, CASES)  # type: ignore[arg-type]
+    for case, metrics in results["oracle"].items():
+        run = next(r for r in oracle.runs if r.case.name == case)
+        column = STATE_NAMES.index(metrics["output"])
+        for at, row in (("at_300ms", 30), ("at_1500ms", 150)):
+            change = run.states[run.first + row, column] - run.states[run.first, column]
+            assert metrics[at]["model_input_effect"] == pytest.approx(change, abs=1e-12)
+            assert results["mirrored"][case][at]["model_input_effect"] == pytest.approx(-change)
+        assert metrics["input_sign_agrees"]
+        assert not results["mirrored"][case]["input_sign_agrees"]
+        assert not results["holding"][case]["input_sign_agrees"]

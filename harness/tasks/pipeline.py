@@ -37,10 +37,11 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
+from controllers.as_controlled import AsControlled
 from controllers.config import ControllerFactory, OwnModelFactory
 from harness.core.checks import integer, is_number
 from harness.core.contracts import LiftedModel, Model, dynamics_of
@@ -62,6 +63,9 @@ from learners.base import load as load_learner
 from learners.persistence import Persistence
 
 log = logging.getLogger(__name__)
+
+# prediction.step_response.<case>.as_controlled: the same case through the model as DE-MPC reads it
+AS_CONTROLLED = "as_controlled"
 
 # Below about 1 m/s the tyres are in their slip-limited low-speed regime and nothing of the
 # handling the learners are for (cornering, load transfer, drag) shows; every working plant
@@ -372,10 +376,27 @@ class Pipeline:
         """``prediction.step_response.<case>``: steering and throttle steps from straight
         driving, the model's open-loop prediction against the plant's
         (harness/evaluation/step_response.py)."""
-        results = step_response.evaluate(
-            {self.learner_name: learner}, plant, recorder=recorder, output_dir=output_dir
-        )
-        return results[self.learner_name]
+        models: dict[str, step_response.Predictor] = {self.learner_name: learner}
+        if dynamics_of(learner) is not None:  # the model as DE-MPC will predict with it
+            models[AS_CONTROLLED] = AsControlled(cast(Model, learner))
+        results = step_response.evaluate(models, plant, recorder=recorder, output_dir=output_dir)
+        cases = results[self.learner_name]
+        for case, controlled in results.get(AS_CONTROLLED, {}).items():
+            cases[case][AS_CONTROLLED] = controlled
+        for case, metrics in cases.items():
+            for view, values in ((self.learner_name, metrics), *_controlled(metrics)):
+                if not values["input_sign_agrees"]:
+                    log.warning(
+                        "%s: %s's effect on %s in %s has the wrong sign (or none) in %s: a "
+                        "controller on this model pushes the wrong way (step_response.%s)",
+                        self.learner_name,
+                        metrics["input"],
+                        metrics["output"],
+                        case,
+                        "its predictions" if view == self.learner_name else "DE-MPC's read-out",
+                        case,
+                    )
+        return cases
 
     def _spectrum(
         self, learner: Learner, dt: float, recorder: Recorder, output_dir: Path
@@ -457,3 +478,8 @@ def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str,
         episode: dict(values[learner_name]) if learner_name in values else dict(values)
         for episode, values in predictions.items()
     }
+
+
+def _controlled(metrics: Mapping[str, Any]) -> list[tuple[str, Mapping[str, Any]]]:
+    """The step response's DE-MPC view, where the run has one."""
+    return [(AS_CONTROLLED, metrics[AS_CONTROLLED])] if AS_CONTROLLED in metrics else []
