@@ -484,3 +484,5 @@ def test_a_runs_summary_says_per_controller_whether_the_lane_change_passed() -> 
     )
     assert lines[3] == "  beside: skipped (no model)"
     assert len(lines) == 4
+    course["path"]["reached_exit"] = False  # a car that stopped before the cones
+    assert "FAILED (never reached the exit), 0.41 m" in summary(metrics).splitlines()[1]

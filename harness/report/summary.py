@@ -64,6 +64,8 @@ def _controller_line(runs: Mapping[str, Any]) -> str:
         path = run.get("path")
         if path is not None:
             verdict = "passed" if path["passed"] else "FAILED"
+            if not path.get("reached_exit", True):
+                verdict += " (never reached the exit)"
             speed_kph = 3.6 * float(path.get("reference_speed_mps", float("nan")))
             parts.append(
                 f"{label} at {speed_kph:.0f} km/h {verdict}, "
