@@ -383,9 +383,12 @@ class Pipeline:
         cases = results[self.learner_name]
         for case, controlled in results.get(AS_CONTROLLED, {}).items():
             cases[case][AS_CONTROLLED] = controlled
+        # A model a controller reads must respond to its inputs the plant's way (persistence,
+        # which declares no dynamics, has no input response by design: no warning).
+        warn = dynamics_of(learner) is not None
         for case, metrics in cases.items():
             for view, values in ((self.learner_name, metrics), *_controlled(metrics)):
-                if not values["input_sign_agrees"]:
+                if warn and not values["input_sign_agrees"]:
                     log.warning(
                         "%s: %s's effect on %s in %s has the wrong sign (or none) in %s: a "
                         "controller on this model pushes the wrong way (step_response.%s)",
