@@ -14,7 +14,7 @@ from typing import cast
 
 import numpy as np
 
-from controllers.de_mpc import _linearization
+from controllers.de_mpc import linearization_of
 from harness.core.contracts import LiftedModel, Model
 from harness.core.episode import MinMaxNormalizer
 
@@ -25,7 +25,7 @@ class AsControlled:
 
     def __init__(self, model: Model) -> None:
         self.model = model
-        self._stepper = _linearization(model)  # None: lifted-linear; raises for no dynamics
+        self._stepper = linearization_of(model)  # None: lifted-linear; raises for no dynamics
         self.normalizer_: MinMaxNormalizer = model.normalizer_
         self._C = np.asarray(model.C_, dtype=float)
         if self._stepper is None:

@@ -235,7 +235,7 @@ class DEMPC:
         self.Np, self.Nc, self.dt = int(config.Np), int(config.Nc), float(config.dt)
         self.sqp_iterations = int(config.sqp_iterations)
         Q, R = config.weights()
-        self.linearization = _linearization(model)
+        self.linearization = linearization_of(model)
         if self.linearization is None:
             A, B, C = _check_model(cast(LiftedModel, model))
         else:
@@ -731,7 +731,7 @@ def _held(plan: np.ndarray, steps: int) -> np.ndarray:
     return np.vstack([plan, np.repeat(plan[-1:], steps - len(plan), axis=0)])
 
 
-def _linearization(model: Model) -> LinearizableModel | None:
+def linearization_of(model: Model) -> LinearizableModel | None:
     """How DE-MPC reads ``model``, by the dynamics it declares: None for lifted-linear (one QP for
     the whole run), else the model to linearise each step."""
     dynamics = dynamics_of(model)

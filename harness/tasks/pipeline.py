@@ -377,26 +377,28 @@ class Pipeline:
         driving, the model's open-loop prediction against the plant's
         (harness/evaluation/step_response.py)."""
         models: dict[str, step_response.Predictor] = {self.learner_name: learner}
-        if dynamics_of(learner) is not None:  # the model as DE-MPC will predict with it
+        # A model a controller reads is also checked as DE-MPC will predict with it, and must
+        # respond to its inputs the plant's way (persistence declares no dynamics: no input
+        # response by design, no controlled view, no warning).
+        views = {self.learner_name: "its predictions"}
+        if dynamics_of(learner) is not None:
             models[AS_CONTROLLED] = AsControlled(cast(Model, learner))
+            views[AS_CONTROLLED] = "DE-MPC's read-out"
         results = step_response.evaluate(models, plant, recorder=recorder, output_dir=output_dir)
         cases = results[self.learner_name]
         for case, controlled in results.get(AS_CONTROLLED, {}).items():
             cases[case][AS_CONTROLLED] = controlled
-        # A model a controller reads must respond to its inputs the plant's way (persistence,
-        # which declares no dynamics, has no input response by design: no warning).
-        warn = dynamics_of(learner) is not None
-        for case, metrics in cases.items():
-            for view, values in ((self.learner_name, metrics), *_controlled(metrics)):
-                if warn and not values["input_sign_agrees"]:
+        for view, label in views.items():
+            for case, values in results[view].items():
+                if AS_CONTROLLED in views and not values["input_sign_agrees"]:
                     log.warning(
                         "%s: %s's effect on %s in %s has the wrong sign (or none) in %s: a "
                         "controller on this model pushes the wrong way (step_response.%s)",
                         self.learner_name,
-                        metrics["input"],
-                        metrics["output"],
+                        values["input"],
+                        values["output"],
                         case,
-                        "its predictions" if view == self.learner_name else "DE-MPC's read-out",
+                        label,
                         case,
                     )
         return cases
@@ -481,8 +483,3 @@ def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str,
         episode: dict(values[learner_name]) if learner_name in values else dict(values)
         for episode, values in predictions.items()
     }
-
-
-def _controlled(metrics: Mapping[str, Any]) -> list[tuple[str, Mapping[str, Any]]]:
-    """The step response's DE-MPC view, where the run has one."""
-    return [(AS_CONTROLLED, metrics[AS_CONTROLLED])] if AS_CONTROLLED in metrics else []
