@@ -7,7 +7,7 @@ accuracy) and closes the loop on the sedan through the ISO 3888-1 double lane ch
 
 - DE-MPC on EDMD (N = 104) and Deep EDMD (N = 13): lifted-linear, prediction matrices built once;
 - DE-MPC on bilinear EDMD (N = 104), input EDMD (N = 3) and the DNN (N = 3, two linearisations a
-  step as ``controller=dnn_mpc``): linearised along the previous plan every step;
+  step at 10/7 as ``controller=dnn_mpc``, one at 60/50 as ``dnn_mpc_long``): linearised every step;
 - ``bicycle_mpc``: the identified single-track model (N = 3), time-varying in the speed;
 
 each tracking the reference's states (the paper's), offset-free, and following the course's
@@ -59,6 +59,8 @@ CONTROLLERS: dict[str, tuple[str, dict[str, Any]]] = {
     "dnn": ("dnn", {"sqp_iterations": 2, "linearization": "predicted"}),  # as dnn_mpc.yaml
     "bicycle_mpc": ("single_track", {}),
 }
+# Keys of a controller at one horizon: the DNN at 60/50 as dnn_mpc_long.yaml (one linearisation).
+AT_HORIZON: dict[tuple[str, str], dict[str, Any]] = {("dnn", "60/50"): {"sqp_iterations": 1}}
 _TRAINING = [
     "learner.training.max_steps=300",
     "learner.training.eval_every_steps=300",
@@ -92,7 +94,12 @@ def run_case(
         model = _MODELS[model_path] = load(model_path)
     Np, Nc = (int(value) for value in horizon.split("/"))
     factory = BicycleMPCConfig if controller == "bicycle_mpc" else DEMPCConfig
-    keys = {**CONTROLLERS[controller][1], **MODES[mode], **(settings or {})}
+    keys = {
+        **CONTROLLERS[controller][1],
+        **AT_HORIZON.get((controller, horizon), {}),
+        **MODES[mode],
+        **(settings or {}),
+    }
     plant = Sedan()
     lane_change = DoubleLaneChange()
     reference, course = lane_change.build(plant.dt, []), lane_change.course()
@@ -308,10 +315,11 @@ def main() -> None:
         print(
             "\n| Np/Nc | controller | mode | N | feedback median / p99 / max ms | target | "
             "prepare median / p99 / max ms | step median / p99 / max ms | misses | "
-            "base step median / p99 / max ms | base/new step median | base/new step p99 | "
+            "base feedback median / p99 ms | base step median / p99 / max ms | "
+            "base/new step median | base/new step p99 | "
             "max deviation m new / base | yaw-rate RMSE new / base |"
         )
-        print("|" + "---|" * 14)
+        print("|" + "---|" * 15)
         for horizon, name, mode in itertools.product(horizons, names, modes):
             case = {
                 "model_path": models[name],
@@ -326,9 +334,12 @@ def main() -> None:
             if "error" in ours:
                 print(f"| {horizon} | {name} | {mode} | – | {ours['error']} |", flush=True)
                 continue
+            theirs_feedback = "–"
             if "error" in theirs:
                 theirs_times, ratio_median, ratio_p99, deviation, rmse = "–", "–", "–", "–", "–"
             else:
+                feedback = theirs["feedback"]
+                theirs_feedback = f"{feedback['median']:.3f} / {feedback['p99']:.3f}"
                 # a whole step of each (the base's act, where it had no preparation)
                 theirs_step = theirs.get("step") or theirs["feedback"]
                 theirs_times = _times(theirs_step)
@@ -338,7 +349,7 @@ def main() -> None:
             print(
                 f"| {horizon} | {name} | {mode} | {ours['N']} | {_times(ours['feedback'])} | "
                 f"{_mark(ours, horizon)} | {_times(ours['prepare'])} | {_times(ours['step'])} | "
-                f"{ours['misses']} | "
+                f"{ours['misses']} | {theirs_feedback} | "
                 f"{theirs_times} | {ratio_median} | {ratio_p99} | "
                 f"{ours['deviation_m']:.3f} / {deviation} | "
                 f"{ours['rmse_yaw_rate']:.4f} / {rmse} |",
