@@ -144,6 +144,11 @@ class DEMPCConfig:
     # predicts; act() is then the feedback phase (tracking.solve_time_ms). False: act() does it
     # all from the measurement.
     real_time_iteration: bool = True
+    # With the real-time iteration, prepare() also solves the QP at the state it predicts (and
+    # throws the answer away), so that the feedback's active-set solver starts from the working
+    # set the measurement most likely needs: the same answer, fewer iterations after the
+    # measurement (input EDMD at 60/50: feedback p99 2.9-3.2 -> 1.2 ms, docs/control.md).
+    presolve: bool = True
 
     def __post_init__(self) -> None:
         key = "controller."
@@ -156,7 +161,7 @@ class DEMPCConfig:
             self.sqp_iterations,
         )
         integer(key + "max_iter", self.max_iter)
-        for flag in ("active_set", "offset_free", "real_time_iteration"):
+        for flag in ("active_set", "offset_free", "real_time_iteration", "presolve"):
             boolean(key + flag, getattr(self, flag))
         choice(key + "compute_delay", self.compute_delay, COMPUTE_DELAYS)
         choice(key + "linearization", self.linearization, LINEARIZATIONS)
@@ -368,7 +373,6 @@ class DEMPC:
                 pose = _pose_ahead(np.asarray(pose, dtype=float), x, self.dt)
             x = self.normalizer.states_inverse(self.C @ z)
         qp: CondensedQP = self.qp
-        shift = np.zeros_like(y_ref)  # the LTI prediction's response to w (offset-free)
         where: _Where | None = None
         if self._path is not None and self.path_qp is not None:
             if pose is None:
@@ -378,17 +382,7 @@ class DEMPC:
         # Small products: one BLAS thread is fastest, for every model (blas.py; the main job's
         # lifted-linear path follower at 60/50: p99 7.8-7.9 ms on two threads, 1.9-4.8 on one).
         with single_threaded():
-            if self.linearization is None and where is not None:
-                solution = self._solve_path_linear(z, v_prev, y_ref, w, where)
-            elif self.linearization is None:
-                if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
-                    shift = self.qp.phi_w @ w
-                    y_ref = y_ref - shift
-                solution = self.qp.solve(z, v_prev, y_ref)
-            else:
-                if self._prepared is None:  # one phase: prepared along the measurement
-                    self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
-                solution = self._feedback(self._prepared, z, v_prev, y_ref, w, where)
+            solution, shift = self._solve(z, v_prev, y_ref, w, where)
         self._prepared = None
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
@@ -424,6 +418,27 @@ class DEMPC:
             input_ready_s=ready,
         )
         return u, info
+
+    def _solve(
+        self,
+        z: np.ndarray,
+        v_prev: np.ndarray,
+        y_ref: np.ndarray,
+        w: np.ndarray | None,
+        where: _Where | None,
+    ) -> tuple[QPSolution, np.ndarray]:
+        """The step's QP from z (the prepared one, or prepared here in one phase), and the
+        shift of the predicted outputs by w that a lifted-linear states QP leaves out."""
+        shift = np.zeros_like(y_ref)
+        if self.linearization is None and where is not None:
+            return self._solve_path_linear(z, v_prev, y_ref, w, where), shift
+        if self.linearization is None:
+            if w is not None:  # Y = Φz z + Φv v + Φw w + Θ ΔV: shifting Y_ref by Φw w is exact
+                shift = self.qp.phi_w @ w
+            return self.qp.solve(z, v_prev, y_ref - shift), shift
+        if self._prepared is None:  # one phase: prepared along the measurement
+            self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
+        return self._feedback(self._prepared, z, v_prev, y_ref, w, where), shift
 
     def _estimate_disturbance(self, z: np.ndarray) -> np.ndarray | None:
         """Offset-free: w moved by a share (``offset_free_gain``) of the last step's one-step
@@ -470,9 +485,10 @@ class DEMPC:
         input it returned; from the reference's first sample before the first step), the
         linearisation along the shifted plan rolled out from there, Θ, the Hessian and its
         factor, the active-set solver's rows. :meth:`act` then only measures, builds the free
-        response and solves (the feedback phase). A no-op for a lifted-linear model (built
-        once) but for a path QP's Θ at a new speed band, and when ``real_time_iteration`` is
-        off."""
+        response and solves (the feedback phase). For a lifted-linear model (built once) only
+        a path QP's Θ at a new speed band. With ``presolve`` it then solves the QP at the
+        predicted state, for the active-set solver's working set only. A no-op when
+        ``real_time_iteration`` is off."""
         if not self.config.real_time_iteration or self._reference is None:
             return
         predicted = self._predicted()
@@ -480,16 +496,18 @@ class DEMPC:
             return
         z, x, pose, t = predicted
         v_prev = self._v_prev
-        if self.linearization is None:
-            if self._path is not None:  # the path QP's Θ for the speed band expected
-                # The last step's speed, not the model's prediction of the next one: a model
-                # that predicts speed badly would otherwise flip the band, and rebuild Θ twice,
-                # every step (the speed moves far less than a band in one period).
-                speed = float((x if self._last is None else self._last.x)[0])
-                assert self.path_qp is not None
-                with single_threaded():
-                    self._path_theta(self._speed_band(speed))
-                    self.path_qp.prepare_solvers()
+        if self.linearization is None and self._path is not None:
+            # The path QP's Θ for the speed band expected: the last step's speed, not the
+            # model's prediction of the next one: a model that predicts speed badly would
+            # otherwise flip the band, and rebuild Θ twice, every step (the speed moves far
+            # less than a band in one period). The presolve below plans at that speed too.
+            x = x.copy()
+            x[0] = (x if self._last is None else self._last.x)[0]
+            assert self.path_qp is not None
+            with single_threaded():
+                self._path_theta(self._speed_band(float(x[0])))
+                self.path_qp.prepare_solvers()
+        if self.linearization is None and not self.config.presolve:
             return
         k = min(round(t / self.dt) + self.delay_steps, self._reference_steps - 1)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
@@ -500,7 +518,10 @@ class DEMPC:
             y_ref, where = self._path_reference(x, pose, y_ref)
         w = self._disturbance if self.offset_free else None
         with single_threaded():
-            self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
+            if self.linearization is not None:
+                self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
+            if self.config.presolve:  # warms the active-set solver; the answer is not used
+                self._solve(z, v_prev, y_ref, w, where)
 
     def _predicted(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float] | None:
         """(z, x, pose, t) the next step will plan from, as the model predicts them: the last

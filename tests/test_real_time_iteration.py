@@ -118,3 +118,45 @@ def test_linearising_at_the_predicted_states_simulates_nothing_and_tracks_as_the
     assert np.ptp(predicted[1][:, 0]) > 0.05
     for state in ("vx", "vy", "yaw_rate"):
         assert predicted[0]["rmse"][state] <= 1.1 * plan[0]["rmse"][state] + 1e-6
+
+
+@pytest.mark.parametrize("model", [toy_bilinear_model(), toy_linear_model()], ids=["TV", "LTI"])
+def test_the_presolve_gives_the_same_inputs_with_fewer_iterations_after_the_measurement(
+    model, monkeypatch
+) -> None:
+    """``presolve``: the preparation solves the QP at the state it predicts, so DAQP's working
+    set is the one the measurement needs: on an exact model the feedback's solves take fewer
+    active-set iterations (the work moved to the preparation), and the inputs are the same."""
+    reference = feasible_reference(model, 300)
+    counted: dict[bool, list[int]] = {True: [], False: []}
+    for presolve in (True, False):
+        config = DEMPCConfig(Np=30, Nc=20, presolve=presolve)
+        controller = config(model, 0.01)
+        solve, act = controller.qp.solve, controller.act
+        in_feedback = [False]
+
+        def counting_solve(*args, solve=solve, presolve=presolve, in_feedback=in_feedback):
+            solution = solve(*args)
+            if in_feedback[0]:
+                counted[presolve].append(solution.iterations)
+            return solution
+
+        def feedback_act(*args, act=act, in_feedback=in_feedback, **kwargs):
+            in_feedback[0] = True
+            try:
+                return act(*args, **kwargs)
+            finally:
+                in_feedback[0] = False
+
+        monkeypatch.setattr(controller.qp, "solve", counting_solve)
+        monkeypatch.setattr(controller, "act", feedback_act)
+        plant = ModelPlant(model, x0=reference[0])
+        _, run = track(plant, controller, reference, name="x", recorder=Recorder())
+        if presolve:
+            with_presolve = model.normalizer_.inputs(run.inputs)
+        else:
+            without = model.normalizer_.inputs(run.inputs)
+    assert np.ptp(with_presolve[:, 0]) > 0.05  # it steers: the QPs are constrained at times
+    np.testing.assert_allclose(with_presolve, without, atol=10 * TOL)
+    assert sum(counted[False]) > 0  # the active set works at all without it
+    assert sum(counted[True]) < sum(counted[False])
