@@ -144,10 +144,12 @@ class DEMPCConfig:
     # predicts; act() is then the feedback phase (tracking.solve_time_ms). False: act() does it
     # all from the measurement.
     real_time_iteration: bool = True
-    # With the real-time iteration, prepare() also solves the QP at the state it predicts (and
-    # throws the answer away), so that the feedback's active-set solver starts from the working
-    # set the measurement most likely needs: the same answer, fewer iterations after the
-    # measurement (input EDMD at 60/50: feedback p99 2.9-3.2 -> 1.2 ms, docs/control.md).
+    # Linearised models with the real-time iteration: prepare() also solves the step's new QP
+    # at the state it predicts (and throws the answer away), so that the feedback's active-set
+    # solver starts from the working set the measurement most likely needs: the same answer,
+    # fewer iterations after the measurement (at 60/50 the feedback's p99: input EDMD 3.0 ->
+    # 0.8 ms, the DNN 2.4 -> 1.0 ms; docs/control.md). A lifted-linear model's QP never
+    # changes, so its last working set is warm already: no presolve (it doubled its step).
     presolve: bool = True
 
     def __post_init__(self) -> None:
@@ -485,9 +487,9 @@ class DEMPC:
         input it returned; from the reference's first sample before the first step), the
         linearisation along the shifted plan rolled out from there, Θ, the Hessian and its
         factor, the active-set solver's rows. :meth:`act` then only measures, builds the free
-        response and solves (the feedback phase). For a lifted-linear model (built once) only
-        a path QP's Θ at a new speed band. With ``presolve`` it then solves the QP at the
-        predicted state, for the active-set solver's working set only. A no-op when
+        response and solves (the feedback phase). With ``presolve`` it then solves the QP at
+        the predicted state, for the active-set solver's working set only. A no-op for a
+        lifted-linear model (built once) but for a path QP's Θ at a new speed band, and when
         ``real_time_iteration`` is off."""
         if not self.config.real_time_iteration or self._reference is None:
             return
@@ -496,18 +498,16 @@ class DEMPC:
             return
         z, x, pose, t = predicted
         v_prev = self._v_prev
-        if self.linearization is None and self._path is not None:
-            # The path QP's Θ for the speed band expected: the last step's speed, not the
-            # model's prediction of the next one: a model that predicts speed badly would
-            # otherwise flip the band, and rebuild Θ twice, every step (the speed moves far
-            # less than a band in one period). The presolve below plans at that speed too.
-            x = x.copy()
-            x[0] = (x if self._last is None else self._last.x)[0]
-            assert self.path_qp is not None
-            with single_threaded():
-                self._path_theta(self._speed_band(float(x[0])))
-                self.path_qp.prepare_solvers()
-        if self.linearization is None and not self.config.presolve:
+        if self.linearization is None:
+            if self._path is not None:  # the path QP's Θ for the speed band expected
+                # The last step's speed, not the model's prediction of the next one: a model
+                # that predicts speed badly would otherwise flip the band, and rebuild Θ twice,
+                # every step (the speed moves far less than a band in one period).
+                speed = float((x if self._last is None else self._last.x)[0])
+                assert self.path_qp is not None
+                with single_threaded():
+                    self._path_theta(self._speed_band(speed))
+                    self.path_qp.prepare_solvers()
             return
         k = min(round(t / self.dt) + self.delay_steps, self._reference_steps - 1)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
@@ -518,8 +518,7 @@ class DEMPC:
             y_ref, where = self._path_reference(x, pose, y_ref)
         w = self._disturbance if self.offset_free else None
         with single_threaded():
-            if self.linearization is not None:
-                self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
+            self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
             if self.config.presolve:  # warms the active-set solver; the answer is not used
                 self._solve(z, v_prev, y_ref, w, where)
 

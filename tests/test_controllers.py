@@ -378,8 +378,7 @@ def test_a_failed_solve_falls_back_to_the_previous_plan_and_says_so(monkeypatch,
 def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
     model = linear_model()
     reference = feasible_reference(model, steps=40)
-    # One solve a step: without the preparation's presolve, whose answer is never applied.
-    controller = DEMPC(model, DEMPCConfig(presolve=False))
+    controller = DEMPC(model)
     solve = controller.qp.solve
     calls = []
 
