@@ -213,8 +213,14 @@ class CondensedQP:
         G[3 * M : 4 * M, :M] = -cumulative
         G[4 * M, M] = -1.0
         self.G, self.rows, self._M = G, G.shape[0], M
-        self._v_min_all, self._v_max_all = np.tile(self.v_min, Nc), np.tile(self.v_max, Nc)
         self._inv_rate, self._cumulative = inv_rate, cumulative
+        # b = b_0 + S v_{t-1}: only the input rows move with v_{t-1} (-v_{t-1} and +v_{t-1}).
+        self._b_upper = np.concatenate(
+            [np.ones(2 * M), np.tile(self.v_max, Nc), -np.tile(self.v_min, Nc), [0.0]]
+        )
+        held = np.tile(np.eye(m), (Nc, 1))  # row k·m + j picks v_{t-1}[j]
+        self._b_shift = np.zeros((self.rows, m))
+        self._b_shift[2 * M : 3 * M], self._b_shift[3 * M : 4 * M] = -held, held
 
     def _build_dual(self) -> None:
         """The active set's dual operator K = G P⁻¹ Gᵀ and the rows of P⁻¹Gᵀ."""
@@ -290,19 +296,14 @@ class CondensedQP:
         dv = self._x_u @ np.concatenate([z, v_prev, y_ref])
         return np.append(dv, 0.0)
 
+    def bounds(self, v_prev: np.ndarray) -> np.ndarray:
+        """b of the rows G x <= b, which move with the last input v_{t-1}."""
+        return self._b_upper + self._b_shift @ v_prev
+
     def residual(self, x: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
-        """G x - b: positive entries are violated rows."""
-        M = self._M
-        dv, eps = x[:M], x[M]
-        scaled = dv * self._inv_rate
-        v = (dv.reshape(self.Nc, self.m).cumsum(axis=0) + v_prev).ravel()
-        out = np.empty(self.rows)
-        out[:M] = scaled - (eps + 1.0)
-        out[M : 2 * M] = -scaled - (eps + 1.0)
-        out[2 * M : 3 * M] = v - self._v_max_all
-        out[3 * M : 4 * M] = self._v_min_all - v
-        out[4 * M] = -eps
-        return out
+        """G x - b: positive entries are violated rows (one dense product: at 60/50 faster
+        than a dozen NumPy calls on G's structure)."""
+        return self.G @ x - self.bounds(v_prev)
 
     def solve(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
         """The QP's optimum for lifted state z, previous input v_prev, references y_ref (n Np,)."""
@@ -342,8 +343,7 @@ class CondensedQP:
         assert factor is not None  # _ensure_daqp built it
         f = np.zeros(M + 1)  # ε_u = 0
         f[:M] = -dtrmv(factor, x_u[:M], lower=1, trans=1)  # L⁻¹c = -Lᵀx_u
-        # b of G x <= b: only the input rows move with v_{t-1} (-v_{t-1} and +v_{t-1}).
-        b = self._daqp_upper + self._daqp_shift @ v_prev
+        b = self.bounds(v_prev)
         if self._daqp is None:
             self._daqp = self._daqp_setup(f, b)
             if self._daqp is None:
@@ -354,23 +354,23 @@ class CondensedQP:
         else:
             self._daqp.update(f=f, bupper=b)
         _, _, flag, info = self._daqp.solve()
-        # x from DAQP's multipliers, as ours computes it from its own: stationarity holds by
-        # construction, and the checks below are the rest of the KKT conditions.
+        # y from DAQP's multipliers, as ours computes it from its own: stationarity holds by
+        # construction, and the checks below are the rest of the KKT conditions, on the rows
+        # in y (G x - b = G L⁻ᵀ y - b: one product instead of the structured residual).
         multipliers = np.asarray(info["lam"], dtype=float)
+        y = -f - multipliers @ self._daqp_rows
+        s = self._daqp_rows @ y - b
         active = multipliers > 0
-        y = -f - multipliers[active] @ self._daqp_rows[active]
-        x = self._daqp_primal(y)
-        s = self.residual(x, v_prev)
-        if (
-            flag != DAQP_OPTIMAL
-            or not np.isfinite(x).all()
-            or s.max() > self.tol
-            or (multipliers < 0).any()
-            or (active.any() and np.abs(s[active]).max() > self.tol)
+        # Written so that a NaN anywhere fails: every comparison with NaN is False.
+        if not (
+            flag == DAQP_OPTIMAL
+            and s.max() <= self.tol
+            and multipliers.min() >= 0
+            and np.abs(s[active]).max(initial=0.0) <= self.tol
         ):
             self._daqp = None  # its working set is suspect: the next solve starts cold
             return None
-        return x, int(info["iterations"])
+        return self._daqp_primal(y), int(info["iterations"])
 
     def _daqp_primal(self, y: np.ndarray) -> np.ndarray:
         """x = L⁻ᵀ y (one triangular solve; ε's row of L is √(2ρ))."""
@@ -393,11 +393,6 @@ class CondensedQP:
         self._daqp_rows = self._build_daqp_rows(self._p_factor)
         self._daqp_identity = np.eye(M + 1)
         self._daqp_lower = np.full(self.rows, -np.inf)  # one-sided rows G x <= b
-        self._daqp_upper = -self.residual(np.zeros(M + 1), np.zeros(self.m))  # b at v_{t-1} = 0
-        shift = np.zeros((self.rows, self.m))
-        held = np.tile(np.eye(self.m), (self.Nc, 1))  # row k·m + j picks v_{t-1}[j]
-        shift[2 * M : 3 * M], shift[3 * M : 4 * M] = -held, held
-        self._daqp_shift = shift
         self._daqp_rows_new = True
         self._daqp_rows_ready = True
 
