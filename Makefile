@@ -47,6 +47,7 @@ bench: setup  ## benchmarks, printed as tables (installs the `bench` extra: cvxp
 	$(BIN)/python -m bench.driver_sawtooth
 	$(BIN)/python -m bench.mpc_solve_time
 	$(BIN)/python -m bench.controller_solve_time
+	$(BIN)/python -m bench.qp_formulation --quick
 	$(BIN)/python -m bench.training_speed
 	$(BIN)/python -m bench.input_structure
 
