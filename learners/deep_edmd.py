@@ -29,7 +29,7 @@ where z_i = lift(x_i) and K^[i] z_0 = A^i z_0 + sum_{j<i} A^{i-1-j} B v_j (eq. f
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from typing import Any, ClassVar, NamedTuple
 
@@ -38,6 +38,7 @@ import torch
 
 from harness.core.checks import boolean, choice, integer, non_negative
 from harness.core.episode import Episode
+from learners import training as loop
 from learners.base import Dim, KoopmanLearner, Shape
 from learners.edmd import linear_rollout
 from learners.linalg import ridge_lstsq, row_chunks
@@ -56,6 +57,13 @@ from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_term
 __all__ = ["BilinearTerm", "DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
 
 _LSTSQ_RIDGE = 1e-10  # relative ridge of the optional least-squares refit of A, B (and of C)
+# The read-out check of checkpoint selection (DeepEDMD.input_effects): 16 validation states,
+# each input moved by ±0.05 of its range and held for 0.3 s (about the lane change's
+# reaction time; a third of the main controller's 0.6 s horizon).
+_EFFECT_STARTS, _EFFECT_STEP, _EFFECT_TIME_S = 16, 0.05, 0.3
+# What a checkpoint whose two read-outs disagree adds to its rollout score: it ranks after
+# every checkpoint whose read-outs agree (scores are means of RMSE / scale, of order 1).
+READOUT_DISAGREES_PENALTY = 1e3
 
 
 @dataclass(frozen=True)
@@ -69,13 +77,22 @@ class LossWeights:
     inf: float = 1e-9
     encoder_l2: float = 1e-9
     decoder_l2: float = 1e-9
+    # Ours (0: the paper): L_readout, the prediction error of x = C z, the read-out DE-MPC
+    # predicts with (with z = [x; phi], the state part of L_xo); needs lifted_includes_state.
+    readout: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
             non_negative(f"learner.alpha.{f.name}", getattr(self, f.name))
 
     def data_terms(self) -> dict[str, float]:
-        return {"ox": self.ox, "xx": self.xx, "xo": self.xo, "inf": self.inf}
+        return {
+            "ox": self.ox,
+            "xx": self.xx,
+            "xo": self.xo,
+            "inf": self.inf,
+            "readout": self.readout,
+        }
 
 
 class BilinearTerm(NamedTuple):
@@ -126,7 +143,9 @@ def deep_edmd_loss_terms(
     bilinear: BilinearTerm | None = None,
     state_weights: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
-    """The paper's L_ox, L_xx, L_xo, L_inf of windows x (B, p+1, n), v (B, p, m); batch means.
+    """The paper's L_ox, L_xx, L_xo, L_inf of windows x (B, p+1, n), v (B, p, m), and our
+    L_readout = 1/p sum_i ||x_i - C K^[i] z_0||^2 (C = [I 0]; 0 when z does not hold x); batch
+    means.
 
     Plain autograd, written to read like the equations (module docstring); it is the
     specification that :func:`deep_edmd_step` is tested against, and the validation loss.
@@ -141,11 +160,13 @@ def deep_edmd_loss_terms(
     pred_err = x_next - mlp_apply(decoder, z_pred)
     lift_err = z[:, 1:] - z_pred
     w = torch.ones(x.shape[-1]) if state_weights is None else state_weights
+    readout_err = lift_err[..., : x.shape[-1]] if lifted_includes_state else 0.0 * lift_err
     return {
         "ox": (recon_err**2 * w).sum(-1).mean(1).mean(),
         "xx": (pred_err**2 * w).sum(-1).mean(1).mean(),
         "xo": (lift_err**2).sum(-1).mean(1).mean(),
         "inf": (recon_err.abs().amax(-1).mean(1) + pred_err.abs().amax(-1).mean(1)).mean(),
+        "readout": (readout_err**2).sum(-1).mean(1).mean(),
     }
 
 
@@ -267,13 +288,17 @@ def deep_edmd_step(
     lift_err = z[1:] - z_pred
     c_ox, c_xx = weights.ox / (batch * p), weights.xx / (batch * p)
     c_xo, c_inf = weights.xo / (batch * p), weights.inf / (batch * p)
+    # L_xo and L_readout (the state part of z, when z holds x) as one weight per coordinate
+    c_lift = torch.full((size,), c_xo)
+    if lifted_includes_state:
+        c_lift[:n] += weights.readout / (batch * p)
     weighted = err * state_weights if state_weights is not None else err
     squared = (err * weighted).sum(-1)
     peak, where = err.abs().max(-1)
     loss = (
         c_ox * squared[:p].sum()
         + c_xx * squared[p:].sum()
-        + c_xo * (lift_err * lift_err).sum()
+        + (c_lift * lift_err * lift_err).sum()
         + c_inf * peak.sum()
     )
     # backward: d loss / d decoder output, then through the decoder, A/B and the encoder
@@ -282,8 +307,9 @@ def deep_edmd_step(
     where = where.unsqueeze(-1)
     grad_d.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
     grad_in = mlp_backward(decoder, acts_d, grad_d.view(-1, n)).view(2 * p, batch, size)
-    grad_z = grad_in[:p] + (2.0 * c_xo) * lift_err  # d/d z_1..z_p (reconstruction, L_xo)
-    grad_pred = grad_in[p:] - (2.0 * c_xo) * lift_err  # d/d K^[i] z_0
+    grad_lift = (2.0 * c_lift) * lift_err
+    grad_z = grad_in[:p] + grad_lift  # d/d z_1..z_p (reconstruction, L_xo, L_readout)
+    grad_pred = grad_in[p:] - grad_lift  # d/d K^[i] z_0
     if bilinear is not None:
         if bilinear.grad_h is None:
             raise ValueError("deep_edmd_step needs bilinear.grad_h to add H's gradient into")
@@ -407,6 +433,11 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         boolean("learner.lifted_includes_state", lifted_includes_state)
         self.lifted_includes_state = lifted_includes_state
         self.alpha = block(LossWeights, alpha, "alpha")
+        if self.alpha.readout and not lifted_includes_state:
+            raise ValueError(
+                "learner.alpha.readout trains x = C z with C = [I 0]: it needs "
+                "learner.lifted_includes_state=true (or alpha.readout=0)"
+            )
         self.prediction_output = choice(
             "learner.prediction_output", prediction_output, ("decoder", "linear")
         )
@@ -459,6 +490,56 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
             size = theta.shape[1]
             self.A_, self.B_ = theta[:size].T.copy(), theta[size:].T.copy()
+
+    def _rollout_scorer(
+        self, train: Sequence[Episode], validation: Sequence[Episode]
+    ) -> Callable[[], dict[str, float]]:
+        """The rollout score (the decoder's predictions, what the tables show), and whether the
+        read-out DE-MPC predicts with, x = C z, moves the states the decoder's way
+        (``readouts_agree``; ours): a checkpoint whose C z answers the throttle by braking,
+        as one seed's did on data=default, ranks after every checkpoint whose read-outs agree
+        (docs/learners.md, "The read-out DE-MPC uses")."""
+        score = super()._rollout_scorer(train, validation)
+        if self.prediction_output == "linear":  # the score already is C z's
+            return score
+        starts, inputs = _effect_starts(validation, self.normalizer_)
+
+        def with_readouts() -> dict[str, float]:
+            out = score()
+            agree = readouts_agree(self.input_effects(starts, inputs))
+            out["readouts_agree"] = float(agree)
+            if not agree:
+                out[loop.ROLLOUT_SCORE] += READOUT_DISAGREES_PENALTY
+            return out
+
+        return with_readouts
+
+    def input_effects(self, starts: np.ndarray, inputs: np.ndarray) -> dict[str, np.ndarray]:
+        """(m, n) mean effect of each input on each state, normalized units, through the
+        decoder and through x = C z: the rollouts from ``starts`` (K, n) under ``inputs``
+        (K, T, m) with input j moved up by _EFFECT_STEP minus moved down, at the last step."""
+        x0 = torch.from_numpy(starts.astype(np.float32))
+        held = np.clip(inputs, _EFFECT_STEP, 1.0 - _EFFECT_STEP)
+        m = inputs.shape[-1]
+        effects: dict[str, np.ndarray] = {}
+        kept = self.prediction_output
+        try:
+            for output in ("decoder", "linear"):
+                self.prediction_output = output
+                rows = []
+                for j in range(m):
+                    ends = []
+                    for sign in (1.0, -1.0):
+                        v = held.copy()
+                        v[..., j] += sign * _EFFECT_STEP
+                        with torch.inference_mode():
+                            x = self._rollout_n(x0, torch.from_numpy(v.astype(np.float32)), None)
+                        ends.append(x[:, -1].double().numpy())
+                    rows.append((ends[0] - ends[1]).mean(axis=0))
+                effects[output] = np.array(rows)
+        finally:
+            self.prediction_output = kept
+        return effects
 
     def _after_training(self, train: Sequence[Episode]) -> None:
         self._encoder_np = None
@@ -554,3 +635,24 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         super()._set_state(state)
         self.A_, self.B_, self.C_ = (state[k].double().numpy().copy() for k in "ABC")
         self._for_control()
+
+
+def readouts_agree(effects: Mapping[str, np.ndarray]) -> bool:
+    """Whether C z moves, for every input, the state the decoder says that input moves most
+    in the decoder's direction (``effects`` from :meth:`DeepEDMD.input_effects`)."""
+    decoder, linear = effects["decoder"], effects["linear"]
+    strongest = np.abs(decoder).argmax(axis=1)
+    rows = np.arange(len(decoder))
+    return bool(np.all(np.sign(linear[rows, strongest]) == np.sign(decoder[rows, strongest])))
+
+
+def _effect_starts(validation: Sequence[Episode], normalizer: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(K, n) normalized states evenly spread over the validation drives and (K, T, m) their
+    measured inputs, each held for _EFFECT_TIME_S."""
+    period = float(np.median(np.diff(validation[0].time_s)))
+    steps = max(1, round(_EFFECT_TIME_S / period))
+    frames = [(e, k) for e in validation for k in range(0, len(e.states) - 1, 1)]
+    chosen = np.linspace(0, len(frames) - 1, _EFFECT_STARTS).round().astype(int)
+    starts = np.array([normalizer.states(frames[i][0].states[frames[i][1]]) for i in chosen])
+    held = np.array([normalizer.inputs(frames[i][0].inputs[frames[i][1]]) for i in chosen])
+    return starts, np.repeat(held[:, None, :], steps, axis=1)

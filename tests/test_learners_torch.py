@@ -19,9 +19,15 @@ from harness.recorder import Recorder
 from learners import DNN, DeepEDMD
 from learners.base import check_same_learner
 from learners.base import load as load_learner
-from learners.deep_edmd import LossWeights, deep_edmd_loss_terms, deep_edmd_step
+from learners.deep_edmd import (
+    READOUT_DISAGREES_PENALTY,
+    LossWeights,
+    deep_edmd_loss_terms,
+    deep_edmd_step,
+)
 from learners.dnn import DNNLossWeights, dnn_loss_terms, dnn_step
-from learners.nets import Dense
+from learners.nets import Dense, mlp_apply
+from learners.trained import TrainedLearner
 from learners.training import History, TrainingConfig, _State
 from learners.windows import WindowData
 from tests.toydata import drive_episodes
@@ -175,6 +181,7 @@ def autograd_objective(learner, x, v, step):
     "make",
     [
         lambda: DeepEDMD(alpha={"inf": 0.1, "encoder_l2": 0.01, "decoder_l2": 0.02}),
+        lambda: DeepEDMD(alpha={"readout": 2.0}),
         lambda: DeepEDMD(lifted_includes_state=False, alpha={"inf": 0.1}),
         lambda: DeepEDMD(random_layer={"enabled": True, "std": 0.3}),
         lambda: DNN(beta={"inf": 0.1, "l2": 0.01}),
@@ -184,6 +191,7 @@ def autograd_objective(learner, x, v, step):
     ],
     ids=[
         "deep_edmd",
+        "deep_edmd_readout",
         "deep_edmd_phi_only",
         "deep_edmd_random",
         "dnn",
@@ -700,17 +708,22 @@ def test_rollout_selection_keeps_the_checkpoint_that_predicts_the_validation_dri
 
     learner = small(cls, training={**RECIPE, "lr": 3e-2}, loss_scales=[0.2, 0.1, 0.05])
     learner.fit(data["train"], data["validation"], data["normalizer"])
-    scores = [v["rollout_score"] for v in learner.history_.validation]
+    history = learner.history_.validation
+    scores = [v["rollout_score"] for v in history]
     assert len(scores) == 3 and len(set(scores)) > 1  # every 10 of 30 steps, and it moved
+    # Deep EDMD's read-out check ranks a checkpoint whose C z disagrees with its decoder last
+    # (the test below); its prediction score is the rest
+    penalties = [READOUT_DISAGREES_PENALTY * (1.0 - v.get("readouts_agree", 1.0)) for v in history]
+    kept = int(np.argmin(scores))
     # the score of the fitted model, recomputed directly as the prediction tables compute it
     scales = np.array(RECIPE_SCALES)
     direct = [
         np.array(list(rmse(open_loop(learner, e), e.states).values())) / scales
         for e in data["validation"]
     ]
-    assert float(np.mean(direct)) == pytest.approx(min(scores), rel=1e-6)
+    assert float(np.mean(direct)) == pytest.approx(scores[kept] - penalties[kept], rel=1e-6)
     scorer = learner._rollout_scorer(data["train"], data["validation"])
-    assert scorer()["rollout_score"] == pytest.approx(min(scores), rel=1e-6)
+    assert scorer()["rollout_score"] == pytest.approx(scores[kept], rel=1e-6)
 
 
 RECIPE_SCALES = TrainingConfig().rollout_scales
@@ -899,3 +912,72 @@ def test_a_trained_deep_edmd_lifts_for_control_as_its_network_does(
         assert lifted.dtype == np.float64 and lifted.shape == by_network.shape
         np.testing.assert_allclose(lifted, by_network, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(model.lift(states[3]), lifted[3], rtol=1e-12)
+
+
+# -- the read-out DE-MPC uses: checkpoints whose C z disagrees with the decoder rank last ---------
+
+
+def test_read_outs_agree_when_c_z_moves_each_inputs_strongest_state_the_decoders_way() -> None:
+    from learners.deep_edmd import readouts_agree
+
+    decoder = np.array([[0.01, 0.03, 0.12], [0.006, -0.006, 0.0]])  # steering: r; pedal: vx
+    assert readouts_agree({"decoder": decoder, "linear": decoder * 2.0})
+    weaker_flipped = decoder * np.array([[1.0, -1.0, 1.0], [1.0, 1.0, 1.0]])
+    assert readouts_agree({"decoder": decoder, "linear": weaker_flipped})
+    pedal_brakes = decoder * np.array([[1.0, 1.0, 1.0], [-1.0, 1.0, 1.0]])  # seed 1's C z
+    assert not readouts_agree({"decoder": decoder, "linear": pedal_brakes})
+
+
+def test_the_c_z_input_effect_is_its_closed_form(data: dict) -> None:
+    """Held inputs ±δ for T steps move x = C z by 2δ C (I + A + ... + A^{T-1}) B e_j,
+    whatever the start: the linear effects of ``input_effects`` are exactly that."""
+    from learners.deep_edmd import _EFFECT_STEP, _effect_starts
+
+    learner = small(DeepEDMD).fit(data["train"], data["validation"], data["normalizer"])
+    starts, inputs = _effect_starts(data["validation"], learner.normalizer_)
+    effects = learner.input_effects(starts, inputs)
+    A, B, C = learner.A_, learner.B_, learner.C_
+    powers = sum(np.linalg.matrix_power(A, k) for k in range(inputs.shape[1]))
+    expected = (2 * _EFFECT_STEP * C @ powers @ B).T  # (m, n)
+    np.testing.assert_allclose(effects["linear"], expected, rtol=1e-5, atol=1e-7)
+    assert effects["decoder"].shape == expected.shape
+    assert learner.prediction_output == "decoder"  # restored after the check
+
+
+@pytest.mark.parametrize("agree", [True, False])
+def test_a_checkpoint_whose_read_outs_disagree_ranks_after_every_one_that_agrees(
+    data: dict, monkeypatch, agree: bool
+) -> None:
+    import learners.deep_edmd as deep_edmd
+
+    learner = small(DeepEDMD).fit(data["train"], data["validation"], data["normalizer"])
+    plain = TrainedLearner._rollout_scorer(learner, data["train"], data["validation"])()
+    monkeypatch.setattr(deep_edmd, "readouts_agree", lambda effects: agree)
+    scored = learner._rollout_scorer(data["train"], data["validation"])()
+    penalty = 0.0 if agree else deep_edmd.READOUT_DISAGREES_PENALTY
+    assert scored["rollout_score"] == pytest.approx(plain["rollout_score"] + penalty, rel=1e-9)
+    assert scored["readouts_agree"] == float(agree)
+
+
+def test_the_readout_loss_is_the_state_part_of_the_lift_error_and_needs_the_state_in_z() -> None:
+    """L_readout = 1/p sum ||x_i - C K^[i] z_0||^2 with C = [I 0]: the first n coordinates of
+    L_xo's error; a lift without the state has no C to train."""
+    learner = DeepEDMD(lifted_dim=4, encoder_hidden=[8], decoder_hidden=[8], horizon=5)
+    learner._build(3, 2)
+    learner.params_.initialize(torch.Generator().manual_seed(0))
+    generator = torch.Generator().manual_seed(1)
+    x, v = torch.rand(6, 6, 3, generator=generator), torch.rand(6, 5, 2, generator=generator)
+    params, views = learner.params_, learner.params_.views()
+    a, b = views["koopman.A.weight"], views["koopman.B.weight"]
+    terms = deep_edmd_loss_terms(
+        params.layers("encoder"), params.layers("decoder"), a, b, x, v, lifted_includes_state=True
+    )
+    z = torch.cat([x, mlp_apply(params.layers("encoder"), x)], -1)
+    state, predicted = x[:, 1:], z[:, 0]
+    expected = 0.0
+    for i in range(5):
+        predicted = predicted @ a.t() + v[:, i] @ b.t()
+        expected += ((state[:, i] - predicted[:, :3]) ** 2).sum(-1).mean() / 5
+    assert float(terms["readout"]) == pytest.approx(float(expected), rel=1e-5)
+    with pytest.raises(ValueError, match="lifted_includes_state"):
+        DeepEDMD(lifted_includes_state=False, alpha={"readout": 1.0})
