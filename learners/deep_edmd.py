@@ -38,7 +38,6 @@ import torch
 
 from harness.core.checks import boolean, choice, integer, non_negative
 from harness.core.episode import Episode
-from learners import training as loop
 from learners.base import Dim, KoopmanLearner, Shape
 from learners.edmd import linear_rollout
 from learners.linalg import ridge_lstsq, row_chunks
@@ -61,9 +60,6 @@ _LSTSQ_RIDGE = 1e-10  # relative ridge of the optional least-squares refit of A,
 # each input moved by ±0.05 of its range and held for 0.3 s (about the lane change's
 # reaction time; a third of the main controller's 0.6 s horizon).
 _EFFECT_STARTS, _EFFECT_STEP, _EFFECT_TIME_S = 16, 0.05, 0.3
-# What a checkpoint whose two read-outs disagree adds to its rollout score: it ranks after
-# every checkpoint whose read-outs agree (scores are means of RMSE / scale, of order 1).
-READOUT_DISAGREES_PENALTY = 1e3
 
 
 @dataclass(frozen=True)
@@ -494,11 +490,12 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
     def _rollout_scorer(
         self, train: Sequence[Episode], validation: Sequence[Episode]
     ) -> Callable[[], dict[str, float]]:
-        """The rollout score (the decoder's predictions, what the tables show), and whether the
-        read-out DE-MPC predicts with, x = C z, moves the states the decoder's way
-        (``readouts_agree``; ours): a checkpoint whose C z answers the throttle by braking,
-        as one seed's did on data=default, ranks after every checkpoint whose read-outs agree
-        (docs/learners.md, "The read-out DE-MPC uses")."""
+        """The rollout score (the decoder's predictions, what the tables show), and, recorded
+        beside it for every checkpoint, whether the read-out DE-MPC predicts with, x = C z,
+        moves the states the decoder's way (``readouts_agree``; ours). Not a selection rule:
+        ranking the checkpoints that disagree last changed no choice on data=default (one
+        seed's C z answered the throttle by braking in every candidate); ``alpha.readout``
+        trains it instead (docs/learners.md, "The read-out DE-MPC predicts with")."""
         score = super()._rollout_scorer(train, validation)
         if self.prediction_output == "linear":  # the score already is C z's
             return score
@@ -506,10 +503,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
 
         def with_readouts() -> dict[str, float]:
             out = score()
-            agree = readouts_agree(self.input_effects(starts, inputs))
-            out["readouts_agree"] = float(agree)
-            if not agree:
-                out[loop.ROLLOUT_SCORE] += READOUT_DISAGREES_PENALTY
+            out["readouts_agree"] = float(readouts_agree(self.input_effects(starts, inputs)))
             return out
 
         return with_readouts
