@@ -158,6 +158,7 @@ class CondensedQP:
         self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
         self.active_set, self.qp_solver = active_set, qp_solver
         self._daqp: daqp.Model | None = None  # set up at its first solve, warm from then on
+        self._daqp_rows_new = False  # rows built that DAQP has not received yet
         self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
         self.dv_max = np.asarray(dv_max, float)
 
