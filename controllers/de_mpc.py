@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -69,6 +70,8 @@ SPEED_BAND_MPS = 0.25
 # A band is kept until the speed is this many bands from it (the nearest band's half, 0.5, plus
 # hysteresis): v̄ is within 0.19 m/s of the speed, 0.8 % at 80 km/h.
 BAND_HOLD = 0.75
+# Path QPs a lifted-linear DE-MPC keeps, one per speed band (about 0.7 MB each at 60/50).
+BAND_QPS = 8
 # The longest prediction horizon, Np·dt (s): 1000 steps at 10 ms, 17 times the paper's longest
 # (60 steps) and the span of the pipeline's prediction windows (task.prediction_window_s). Θ holds
 # C·Aᵏ·B for k <= Np, so a learned model's mode outside the unit circle (spectrum.unstable_modes;
@@ -293,6 +296,10 @@ class DEMPC:
             self.frenet = FrenetOutputs(self.normalizer, self.dt)
             settings["Q"] = config.path_weights()
             self.path_qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **settings)
+        self._path_settings = settings
+        # A lifted-linear model's path QPs, one per speed band met (see _path_theta), the most
+        # recently used last.
+        self._band_qps: OrderedDict[float, TimeVaryingQP] = OrderedDict()
         self._path: ReferencePath | None = None
         self._path_band: float | None = None  # the v̄ whose Θ a lifted-linear path QP holds
         self._path_hint: int | None = None
@@ -342,6 +349,8 @@ class DEMPC:
         self.qp.reset()
         if self.path_qp is not None:
             self.path_qp.reset()
+        for band_qp in self._band_qps.values():
+            band_qp.reset()
 
     @property
     def follows_path(self) -> bool:
@@ -385,6 +394,8 @@ class DEMPC:
         # lifted-linear path follower at 60/50: p99 7.8-7.9 ms on two threads, 1.9-4.8 on one).
         with single_threaded():
             solution, shift = self._solve(z, v_prev, y_ref, w, where)
+        if where is not None and self.path_qp is not None:
+            qp = self.path_qp  # a lifted-linear model's may be another band's now
         self._prepared = None
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
@@ -504,10 +515,15 @@ class DEMPC:
                 # that predicts speed badly would otherwise flip the band, and rebuild Θ twice,
                 # every step (the speed moves far less than a band in one period).
                 speed = float((x if self._last is None else self._last.x)[0])
-                assert self.path_qp is not None
+                band = self._speed_band(speed)
                 with single_threaded():
-                    self._path_theta(self._speed_band(speed))
-                    self.path_qp.prepare_solvers()
+                    self._path_theta(band)
+                    # The band a speed change would switch to next is one band away: build one
+                    # such QP a step (the nearer side first), so that the switch, which happens
+                    # in the feedback, finds it built.
+                    for side in sorted((-1.0, 1.0), key=lambda s: s * (band - speed)):
+                        if self._band_qp(band + side * SPEED_BAND_MPS):
+                            break
             return
         k = min(round(t / self.dt) + self.delay_steps, self._reference_steps - 1)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
@@ -652,12 +668,27 @@ class DEMPC:
         return held
 
     def _path_theta(self, band: float) -> None:
-        """A lifted-linear model's path QP holds the Θ of speed band ``band`` (built when the
-        band changes: its Hessian and factor with it)."""
-        assert self.frenet is not None and self.path_qp is not None
+        """A lifted-linear model's path QP is the one of speed band ``band``: each band's QP
+        (Θ, Hessian, factor, the active-set solver's rows) is built once and kept, warm, for
+        the run and the next ones (BAND_QPS of them, the least recently used dropped)."""
         if band != self._path_band:
-            self.path_qp.set_prediction_matrix(self.frenet.extend_theta(self.qp.theta, band))
+            self._band_qp(band)
+            self.path_qp = self._band_qps[band]
+            self._band_qps.move_to_end(band)
             self._path_band = band
+
+    def _band_qp(self, band: float) -> bool:
+        """Build the path QP of speed band ``band`` unless it is kept: whether it was built."""
+        if band in self._band_qps:
+            return False
+        assert self.frenet is not None
+        qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **self._path_settings)
+        qp.set_prediction_matrix(self.frenet.extend_theta(self.qp.theta, band))
+        qp.prepare_solvers()
+        self._band_qps[band] = qp  # the most recently used end
+        while len(self._band_qps) > BAND_QPS:
+            self._band_qps.popitem(last=False)
+        return True
 
     def _solve_path_linear(
         self,

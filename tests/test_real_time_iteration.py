@@ -161,3 +161,42 @@ def test_the_presolve_gives_the_same_inputs_with_fewer_iterations_after_the_meas
     np.testing.assert_allclose(with_presolve, without, atol=10 * TOL)
     assert sum(counted[False]) > 0  # the active set works at all without it
     assert sum(counted[True]) < sum(counted[False])
+
+
+def test_a_lifted_linear_path_follower_builds_each_speed_bands_qp_before_the_measurement(
+    monkeypatch,
+) -> None:
+    """The speed ramps across several speed bands of the path kinematics: each band's QP is
+    built in a preparation (the next band ahead of the switch), none in the feedback, and the
+    inputs are the one-phase step's, which builds them when the speed gets there."""
+    model = toy_linear_model()
+    path = DoubleLaneChange(speed_mps=20.0).course().path()
+    reference = np.column_stack([np.linspace(20.0, 21.5, 300), np.zeros(300), np.zeros(300)])
+    settings = {"reference": "path", "Np": 30, "Nc": 20}
+    controller = DEMPCConfig(**settings)(model, 0.01)  # type: ignore[arg-type]
+    built: dict[str, list[float]] = {"act": [], "prepare": []}
+    phase = ["prepare"]
+    band_qp, act = controller._band_qp, controller.act
+
+    def counting_band_qp(band: float) -> bool:
+        fresh = band_qp(band)
+        if fresh:
+            built[phase[0]].append(band)
+        return fresh
+
+    def feedback(*args, **kwargs):
+        phase[0] = "act"
+        try:
+            return act(*args, **kwargs)
+        finally:
+            phase[0] = "prepare"
+
+    monkeypatch.setattr(controller, "_band_qp", counting_band_qp)
+    monkeypatch.setattr(controller, "act", feedback)
+    plant = ModelPlant(model, x0=reference[0])
+    _, run = track(plant, controller, reference, name="x", recorder=Recorder(), path=path)
+    _, one_phase = _inputs(model, reference, path, real_time_iteration=False, **settings)
+    speeds = run.states[:, 0]
+    assert np.ptp(speeds) > 3 * 0.25  # the run crossed several bands
+    assert len(built["prepare"]) >= 4 and built["act"] == []
+    np.testing.assert_allclose(model.normalizer_.inputs(run.inputs), one_phase, atol=10 * TOL)
