@@ -30,6 +30,7 @@ gives the plant's steering ratio, so the drawn front wheels turn by the road-whe
 
 from __future__ import annotations
 
+import logging
 import os
 import uuid
 from collections.abc import Mapping, Sequence
@@ -47,14 +48,22 @@ __all__ = [
     "CAR_LENGTH_M",
     "CAR_WIDTH_M",
     "FRONT_AXLE_X_M",
+    "MAX_VIEWS",
     "REAR_AXLE_X_M",
     "WHEEL_RADIUS_M",
     "Recorder",
     "RerunRecorder",
 ]
 
+log = logging.getLogger(__name__)
+
 # The drawn car: the body the lane change judges against the cones (harness/references/course.py,
 # centred on the pose), a cabin on it, and wheels where harness/plant/mjcf/sedan.xml puts them.
+# Views the default layout holds at most: a blueprint of about 40 rollout tabs (320 views) made
+# the viewer (0.41) refuse the whole recording ("Data source finished without loading a
+# recording"), 30 tabs (240 views) loaded (synthetic recordings; docs/reliability_run.md). Tabs
+# go in priority order until the next would pass it; every rollout stays in the recording.
+MAX_VIEWS = 200
 CAR_LENGTH_M = 4.6
 CAR_WIDTH_M = 1.8
 CAR_HEIGHT_M = 1.45
@@ -244,6 +253,13 @@ class _RolloutInfo:
     priority: int = 0
     eye_position: tuple[float, float, float] | None = None
     eye_target: tuple[float, float, float] | None = None
+
+
+def _tab_views(r: _RolloutInfo) -> int:
+    """Views in a rollout's tab: the car, one plot per state, per input, the error, per extra."""
+    return (
+        int(r.has_pose) + len(r.states) + len(r.input_plots) + int(r.has_reference) + len(r.extras)
+    )
 
 
 @dataclass
@@ -715,7 +731,13 @@ class RerunRecorder(Recorder):
         tabs: list[rrb.Container | rrb.View] = []
         link = rrb.TimeAxis(link="LinkToGlobal")
         legend = rrb.PlotLegend(corner="LeftTop")
+        count, left_out = len(self._series), []  # views; the series tab's are kept first
         for r in sorted(self._rollouts, key=lambda r: -r.priority):  # stable: logged order
+            size = _tab_views(r)
+            if count + size > MAX_VIEWS:
+                left_out.append(r.name)
+                continue
+            count += size
             # Each state's plot lists its lines by path: the reference is drawn where it is.
             state_views = [
                 rrb.TimeSeriesView(
@@ -783,6 +805,17 @@ class RerunRecorder(Recorder):
                 for s in self._series.values()
             ]
             tabs.append(rrb.Grid(*views, name="series"))
+        if left_out:
+            log.info(
+                "%s: the default layout shows %d of %d rollouts (at most %d views); the other "
+                "%d are in the recording, under their names: %s",
+                self.path.name,
+                len(self._rollouts) - len(left_out),
+                len(self._rollouts),
+                MAX_VIEWS,
+                len(left_out),
+                ", ".join(left_out),
+            )
         if not tabs:
             return None
         timeline = SIM_TIMELINE if self._rollouts else next(iter(self._series.values())).timeline

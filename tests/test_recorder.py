@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from harness.recorder import (
     CAR_LENGTH_M,
     CAR_WIDTH_M,
     FRONT_AXLE_X_M,
+    MAX_VIEWS,
     REAR_AXLE_X_M,
     WHEEL_RADIUS_M,
     Recorder,
@@ -492,6 +494,32 @@ def test_tabs_follow_priority_then_logging_order(tmp_path: Path) -> None:
     assert blueprint is not None and blueprint.root_container is not None
     tabs = [tab.name for tab in blueprint.root_container.contents]
     assert tabs == ["lane_change", "test_drive", "data", "more"]
+
+
+def test_the_default_layout_stops_at_its_view_budget_highest_priority_first(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A viewer refuses a recording whose layout has too many views: tabs are added by priority
+    until MAX_VIEWS, the rest are named in one log line, and every rollout is still logged."""
+    d = _rollout_data(20)
+    per_tab = 1 + 3 + 2  # the car, three states, two inputs
+    count = MAX_VIEWS // per_tab + 5
+    path = tmp_path / "many.rrd"
+    with caplog.at_level(logging.INFO, logger="harness.recorder"), RerunRecorder(path) as rec:
+        for i in range(count):
+            rec.rollout(f"drive_{i:03d}", d["time_s"], d["states"], d["inputs"], poses=d["poses"])
+        rec.rollout(
+            "lane_change", d["time_s"], d["states"], d["inputs"], poses=d["poses"], priority=2
+        )
+        blueprint = rec.blueprint()
+    assert blueprint is not None and blueprint.root_container is not None
+    tabs = [tab.name for tab in blueprint.root_container.contents]
+    assert tabs[0] == "lane_change" and len(tabs) == MAX_VIEWS // per_tab
+    assert tabs[1:] == [f"drive_{i:03d}" for i in range(len(tabs) - 1)]
+    assert f"shows {len(tabs)} of {count + 1} rollouts" in caplog.text
+    assert f"drive_{count - 1:03d}" in caplog.text
+    logged = {c.entity_path.split("/")[1] for c in _chunks(path)}
+    assert {f"drive_{i:03d}" for i in range(count)} <= logged  # every rollout is recorded
 
 
 LANE = "tracking/de_mpc/lane_change"
