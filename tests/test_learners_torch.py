@@ -344,7 +344,7 @@ def test_a_run_fits_in_its_directory_and_keeps_the_loss_curves(
 
 def learner_terms(cls) -> tuple[str, ...]:
     """The loss terms a learner validates besides their weighted sum ``loss``."""
-    return ("ox", "xx", "xo", "inf") if cls is DeepEDMD else ("prediction", "inf")
+    return ("ox", "xx", "xo", "inf", "readout") if cls is DeepEDMD else ("prediction", "inf")
 
 
 @pytest.mark.parametrize("cls", [DNN, DeepEDMD])
