@@ -315,7 +315,9 @@ class Recorder:
             input_names: Names of the input columns.
             extra: Further named (N,) or (N, k) series, logged under ``{name}/extra/<key>``.
             priority: Tabs go in descending priority, then in logged order: a run's result
-                (the closed-loop tracking, the lane change first) is what the recording opens on.
+                (the closed-loop tracking, the lane change first) is what the recording opens on,
+                and what the layout keeps when it reaches MAX_VIEWS (the drives a run learns
+                from have -1: shown last).
             reference: (N, len(state_names)) states the rollout tracks: drawn on each state's
                 plot (``reference`` beside ``actual``), and actual - reference on one error plot.
             overlays: Further (N, len(state_names)) series drawn on each state's plot under

@@ -47,6 +47,7 @@ def prepare(
                 e.poses[::step],
                 input_names=e.input_names,
                 extra={"lateral_accel_mps2": coverage.lateral_accel(e)[::step]},
+                priority=-1,  # the run's inputs: the layout's last tabs (it has a view budget)
             )
     metrics = {
         "key": dataset.key,
