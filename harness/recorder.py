@@ -57,13 +57,14 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# The drawn car: the body the lane change judges against the cones (harness/references/course.py,
-# centred on the pose), a cabin on it, and wheels where harness/plant/mjcf/sedan.xml puts them.
 # Views the default layout holds at most: a blueprint of about 40 rollout tabs (320 views) made
 # the viewer (0.41) refuse the whole recording ("Data source finished without loading a
 # recording"), 30 tabs (240 views) loaded (synthetic recordings; docs/reliability_run.md). Tabs
 # go in priority order until the next would pass it; every rollout stays in the recording.
 MAX_VIEWS = 200
+
+# The drawn car: the body the lane change judges against the cones (harness/references/course.py,
+# centred on the pose), a cabin on it, and wheels where harness/plant/mjcf/sedan.xml puts them.
 CAR_LENGTH_M = 4.6
 CAR_WIDTH_M = 1.8
 CAR_HEIGHT_M = 1.45
