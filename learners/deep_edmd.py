@@ -645,8 +645,8 @@ def _effect_starts(validation: Sequence[Episode], normalizer: Any) -> tuple[np.n
     measured inputs, each held for _EFFECT_TIME_S."""
     period = float(np.median(np.diff(validation[0].time_s)))
     steps = max(1, round(_EFFECT_TIME_S / period))
-    frames = [(e, k) for e in validation for k in range(0, len(e.states) - 1, 1)]
-    chosen = np.linspace(0, len(frames) - 1, _EFFECT_STARTS).round().astype(int)
-    starts = np.array([normalizer.states(frames[i][0].states[frames[i][1]]) for i in chosen])
-    held = np.array([normalizer.inputs(frames[i][0].inputs[frames[i][1]]) for i in chosen])
-    return starts, np.repeat(held[:, None, :], steps, axis=1)
+    states = np.concatenate([e.states[:-1] for e in validation])
+    inputs = np.concatenate([e.inputs[:-1] for e in validation])
+    chosen = np.linspace(0, len(states) - 1, _EFFECT_STARTS).round().astype(int)
+    held = normalizer.inputs(inputs[chosen])
+    return normalizer.states(states[chosen]), np.repeat(held[:, None, :], steps, axis=1)
