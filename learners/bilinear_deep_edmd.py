@@ -51,7 +51,7 @@ from learners.bilinear import (
 )
 from learners.deep_edmd import BilinearTerm, DeepEDMD, _Objective
 from learners.linalg import ridge_lstsq, row_chunks
-from learners.nets import Dense, LayerSpec, mlp_apply
+from learners.nets import Dense, LayerSpec
 from learners.training import block
 
 __all__ = ["BilinearDeepEDMD", "StabilityPenalty", "stability_penalty"]
@@ -231,15 +231,9 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
                     z[:-1][rows], v[:-1][rows], z[1:][rows], self.v0_, varying, self.ridge_prior
                 )
 
-    def _rollout_n(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> torch.Tensor:
+    def _lifted_rollout(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> np.ndarray:
         z0 = self._lift_n(x0, layer).double().numpy()
-        z = bilinear_rollout(self.A_, self.B_, self.H_, z0, v.double().numpy(), self.v0_)
-        if self.prediction_output == "linear":
-            with np.errstate(over="ignore", invalid="ignore"):
-                return torch.from_numpy(z @ self.C_.T)
-        decoder = self.params_.layers("decoder")
-        with np.errstate(over="ignore", invalid="ignore"):
-            return mlp_apply(decoder, torch.from_numpy(z.astype(np.float32)))
+        return bilinear_rollout(self.A_, self.B_, self.H_, z0, v.double().numpy(), self.v0_)
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {**super()._state(), "H": self.H_}

@@ -514,26 +514,20 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         (K, T, m) with input j moved up by _EFFECT_STEP minus moved down, at the last step."""
         x0 = torch.from_numpy(starts.astype(np.float32))
         held = np.clip(inputs, _EFFECT_STEP, 1.0 - _EFFECT_STEP)
-        m = inputs.shape[-1]
-        effects: dict[str, np.ndarray] = {}
-        kept = self.prediction_output
-        try:
-            for output in ("decoder", "linear"):
-                self.prediction_output = output
-                rows = []
-                for j in range(m):
-                    ends = []
-                    for sign in (1.0, -1.0):
-                        v = held.copy()
-                        v[..., j] += sign * _EFFECT_STEP
-                        with torch.inference_mode():
-                            x = self._rollout_n(x0, torch.from_numpy(v.astype(np.float32)), None)
-                        ends.append(x[:, -1].double().numpy())
-                    rows.append((ends[0] - ends[1]).mean(axis=0))
-                effects[output] = np.array(rows)
-        finally:
-            self.prediction_output = kept
-        return effects
+        effects: dict[str, list[np.ndarray]] = {"decoder": [], "linear": []}
+        for j in range(inputs.shape[-1]):
+            ends = []
+            for sign in (1.0, -1.0):
+                v = held.copy()
+                v[..., j] += sign * _EFFECT_STEP
+                with torch.inference_mode():
+                    z = self._lifted_rollout(x0, torch.from_numpy(v.astype(np.float32)), None)
+                ends.append(
+                    {out: self._read_out(z[:, -1], out).double().numpy() for out in effects}
+                )
+            for out, rows in effects.items():
+                rows.append((ends[0][out] - ends[1][out]).mean(axis=0))
+        return {out: np.array(rows) for out, rows in effects.items()}
 
     def _after_training(self, train: Sequence[Episode]) -> None:
         self._encoder_np = None
@@ -608,13 +602,19 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             return self._lift_n(x_n).double().numpy()
 
     def _rollout_n(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> torch.Tensor:
+        return self._read_out(self._lifted_rollout(x0, v, layer), self.prediction_output)
+
+    def _lifted_rollout(self, x0: torch.Tensor, v: torch.Tensor, layer: Dense | None) -> np.ndarray:
+        """z_0 .. z_T (R, T + 1, N) from x0 (R, n) under v (R, T, m), normalized."""
         z0 = self._lift_n(x0, layer).double().numpy()
-        z = linear_rollout(self.A_, self.B_, z0, v.double().numpy())
-        if self.prediction_output == "linear":
-            with np.errstate(over="ignore", invalid="ignore"):
+        return linear_rollout(self.A_, self.B_, z0, v.double().numpy())
+
+    def _read_out(self, z: np.ndarray, output: str) -> torch.Tensor:
+        """The states of lifted states z: by C z (``linear``) or by the decoder."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            if output == "linear":
                 return torch.from_numpy(z @ self.C_.T)
-        decoder = self.params_.layers("decoder")
-        return mlp_apply(decoder, torch.from_numpy(z.astype(np.float32)))
+            return mlp_apply(self.params_.layers("decoder"), torch.from_numpy(z.astype(np.float32)))
 
     def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
         return {**super()._state(), "A": self.A_, "B": self.B_, "C": self.C_}
