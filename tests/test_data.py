@@ -20,11 +20,11 @@ from harness.data.store import (
     DataConfig,
     Dataset,
     DatasetError,
-    _write_manifest,
     collect,
     content_key,
     drive_episode,
     load,
+    write_manifest,
 )
 from harness.plant import Sedan, SedanParams
 from harness.plant.params import TireParams
@@ -344,7 +344,7 @@ def test_interrupted_collection_resumes_without_redoing_finished_episodes(
     manifest["episodes"] = {k: v for k, v in manifest["episodes"].items() if k in kept}
     manifest["complete"] = False
     manifest.pop("split"), manifest.pop("normalizer")
-    _write_manifest(target, manifest)
+    write_manifest(target, manifest)
     for name in kept:
         (target / f"{name}.npz").write_bytes((directory / f"{name}.npz").read_bytes())
     stamps = {name: (target / f"{name}.npz").stat().st_mtime_ns for name in kept}

@@ -241,8 +241,8 @@ def test_a_non_finite_episode_its_manifest_vouches_for_is_refused_naming_file_an
     test = copy / f"{load(reference).manifest['split']['test'][0]}.npz"
     poison(test, "inputs", 7, 0, np.inf)
     manifest = json.loads((copy / "manifest.json").read_text())
-    manifest["episodes"][test.stem]["sha256"] = store._sha256(test)
-    store._write_manifest(copy, manifest)
+    manifest["episodes"][test.stem]["sha256"] = store.file_sha256(test)
+    store.write_manifest(copy, manifest)
     with pytest.raises(DatasetError) as info:
         load(copy)
     message = str(info.value)

@@ -37,13 +37,13 @@ from harness.core.files import write_atomic
 from harness.data.store import (
     SPLITS,
     DatasetError,
-    _locked,
-    _read_manifest,
-    _remove_temporaries,
-    _sha256,
-    _verify,
-    _write_manifest,
     dataset_root,
+    file_sha256,
+    locked,
+    read_manifest,
+    remove_temporaries,
+    verify_episodes,
+    write_manifest,
 )
 
 __all__ = ["Column", "LogsConfig", "import_logs", "read_log"]
@@ -392,7 +392,7 @@ def _counts(weights: np.ndarray, files: int) -> list[int]:
 
 def content_key(logs: LogsConfig, files: Sequence[Path]) -> tuple[str, dict[str, str]]:
     """The store key (a hash of the config and of every file's bytes) and the files' SHA-256."""
-    digests = {path.name: _sha256(path) for path in files}
+    digests = {path.name: file_sha256(path) for path in files}
     identity = {"format": FORMAT, "logs": logs.content(), "files": digests}
     text = json.dumps(identity, sort_keys=True, default=list)
     return hashlib.sha256(text.encode()).hexdigest()[:16], digests
@@ -406,16 +406,16 @@ def import_logs(logs: LogsConfig) -> Path:
     split = split_files(logs, files)
     directory = dataset_root(logs) / key
     directory.mkdir(parents=True, exist_ok=True)
-    with _locked(directory):
-        _remove_temporaries(directory)
+    with locked(directory):
+        remove_temporaries(directory)
         try:
-            stored = _read_manifest(directory)
+            stored = read_manifest(directory)
         except Exception:  # damaged: rebuilt below from the logs, which are the truth
             stored = None
         if (
             stored is not None
             and stored.get("complete")
-            and not _verify(directory, stored["episodes"])
+            and not verify_episodes(directory, stored["episodes"])
         ):
             return directory
         entries: dict[str, dict[str, Any]] = {}
@@ -429,7 +429,7 @@ def import_logs(logs: LogsConfig) -> Path:
             _write_episode(target, episode)
             entries[episode.name] = {
                 "file": target.name,
-                "sha256": _sha256(target),
+                "sha256": file_sha256(target),
                 "steps": len(episode),
                 "spun": False,
                 "source": path.name,
@@ -457,7 +457,7 @@ def import_logs(logs: LogsConfig) -> Path:
             "normalizer": MinMaxNormalizer.fit(train).to_dict(),
             "complete": True,
         }
-        _write_manifest(directory, manifest)
+        write_manifest(directory, manifest)
     return directory
 
 

@@ -205,7 +205,8 @@ class Dataset:
         return self.train + self.validation + self.test
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """The file's SHA-256 (hex), read in chunks: a stored episode's, or a user's log's."""
     digest = hashlib.sha256()
     with path.open("rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -277,7 +278,9 @@ def _manifest_digest(manifest: Mapping[str, Any]) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
-def _write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+def write_manifest(directory: Path, manifest: dict[str, Any]) -> None:
+    """The manifest, with a checksum of its own body, written atomically: the last file a
+    dataset gets, so that a directory with one is complete."""
     body = {k: v for k, v in manifest.items() if k != MANIFEST_CHECKSUM}
     text = json.dumps({**body, MANIFEST_CHECKSUM: _manifest_digest(body)}, indent=1)
     write_text_atomic(directory / MANIFEST, text)
@@ -287,7 +290,7 @@ class _ManifestError(Exception):
     """``manifest.json`` cannot be trusted; the message says why (a clause after its path)."""
 
 
-def _read_manifest(directory: Path) -> dict[str, Any] | None:
+def read_manifest(directory: Path) -> dict[str, Any] | None:
     """The stored manifest, None where there is none; :class:`_ManifestError` where it cannot
     be read or does not match its own checksum (a flipped byte, an edited digit or name)."""
     path = directory / MANIFEST
@@ -319,7 +322,7 @@ def _read_manifest(directory: Path) -> dict[str, Any] | None:
 
 
 @contextmanager
-def _locked(directory: Path) -> Iterator[None]:
+def locked(directory: Path) -> Iterator[None]:
     """One collector per dataset: concurrent jobs wait here instead of collecting twice."""
     with (directory / ".lock").open("w") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
@@ -329,7 +332,7 @@ def _locked(directory: Path) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def _remove_temporaries(directory: Path) -> None:
+def remove_temporaries(directory: Path) -> None:
     """Half-written files of a killed writer (``.<name>.<random>.tmp``); call under the lock."""
     for path in directory.glob(".*.tmp"):
         path.unlink(missing_ok=True)
@@ -373,7 +376,7 @@ def drive_episode(
 
 
 def _entry(path: Path, steps: int, spun: bool) -> dict[str, Any]:
-    return {"file": path.name, "sha256": _sha256(path), "steps": steps, "spun": spun}
+    return {"file": path.name, "sha256": file_sha256(path), "steps": steps, "spun": spun}
 
 
 def _check_episode_file(path: Path, planned: int, dt: float) -> dict[str, Any]:
@@ -415,14 +418,14 @@ def _read_episode(
     return episode
 
 
-def _verify(directory: Path, episodes: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+def verify_episodes(directory: Path, episodes: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
     """Per episode that cannot be used, what is wrong with its file."""
     problems = {}
     for name, entry in episodes.items():
         path = directory / entry["file"]
         if not path.exists():
             problems[name] = "is missing"
-        elif _sha256(path) != entry["sha256"]:
+        elif file_sha256(path) != entry["sha256"]:
             problems[name] = "fails its checksum (truncated or modified)"
     return problems
 
@@ -534,11 +537,11 @@ def collect_counted(
     directory = dataset_root(data) / key
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        with _locked(directory):
+        with locked(directory):
             try:
                 return directory, _collect_locked(plant, data, knowledge, directory, key, progress)
             finally:
-                _remove_temporaries(directory)  # the workers have stopped by now
+                remove_temporaries(directory)  # the workers have stopped by now
     except OSError as error:
         if error.errno in _NOT_WRITABLE and _intact(directory, key):
             return directory, 0  # a complete dataset on a read-only disk is fine to use
@@ -547,14 +550,14 @@ def collect_counted(
 
 def _intact(directory: Path, key: str) -> bool:
     try:
-        manifest = _read_manifest(directory)
+        manifest = read_manifest(directory)
     except (_ManifestError, OSError):
         return False
     return (
         manifest is not None
         and manifest["key"] == key
         and manifest["complete"]
-        and not _verify(directory, manifest["episodes"])
+        and not verify_episodes(directory, manifest["episodes"])
     )
 
 
@@ -567,11 +570,11 @@ def _collect_locked(
     progress: bool,
 ) -> int:
     """Repair, resume or reuse the dataset in ``directory`` (locked); the episodes driven."""
-    _remove_temporaries(directory)
+    remove_temporaries(directory)
     manifest_path = directory / MANIFEST
     lengths = data.episode_lengths()
     try:
-        stored = _read_manifest(directory)
+        stored = read_manifest(directory)
     except _ManifestError as damaged:
         log.warning("data: %s %s; rebuilding it from the episode files", manifest_path, damaged)
         stored = None
@@ -587,7 +590,7 @@ def _collect_locked(
     else:
         versions = stored["versions"]
         episodes = dict(stored["episodes"])
-        for name, problem in _verify(directory, episodes).items():
+        for name, problem in verify_episodes(directory, episodes).items():
             path = directory / episodes[name]["file"]
             log.warning(
                 "data: %s %s; recollecting %s alone (same seed, same bytes)", path, problem, name
@@ -622,7 +625,7 @@ def _collect_locked(
                     )
                 manifest["episodes"][name] = entry
                 manifest["episodes"] = dict(sorted(manifest["episodes"].items()))
-                _write_manifest(directory, manifest)  # progress survives an interruption
+                write_manifest(directory, manifest)  # progress survives an interruption
                 bar.update(lengths[index])
         bar.close()
     if stored is None or todo or not stored["complete"]:
@@ -637,7 +640,7 @@ def _collect_locked(
         train = [_load_episode(directory, n, manifest) for n in manifest["split"]["train"]]
         manifest["normalizer"] = MinMaxNormalizer.fit(train).to_dict()
         manifest["complete"] = True
-        _write_manifest(directory, manifest)
+        write_manifest(directory, manifest)
     return len(todo)
 
 
@@ -685,7 +688,7 @@ def load(directory: Path | str) -> Dataset:
     directory = Path(directory)
     path = directory / MANIFEST
     try:
-        manifest = _read_manifest(directory)
+        manifest = read_manifest(directory)
     except _ManifestError as damaged:
         raise DatasetError(
             f"data: {path} {damaged}; {RERUN} to rebuild it from the episode files"
@@ -694,7 +697,7 @@ def load(directory: Path | str) -> Dataset:
         raise DatasetError(f"data: {directory} has no {MANIFEST}; it is not a dataset")
     if not manifest["complete"]:
         raise DatasetError(f"data: {directory} is incomplete; {RERUN} to finish it")
-    problems = _verify(directory, manifest["episodes"])
+    problems = verify_episodes(directory, manifest["episodes"])
     for name, problem in problems.items():
         raise DatasetError(
             f"data: {directory / manifest['episodes'][name]['file']} {problem}; {RERUN} to "
