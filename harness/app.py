@@ -73,6 +73,11 @@ def composition_error(error: BaseException) -> str:
         return f"{first}; options: {', '.join(options)}" if options else first
     lines = [line.strip() for line in str(error).strip().splitlines() if line.strip()]
     message = lines[0].rstrip(".") if lines else type(error).__name__
+    if message.endswith("composing config:") and len(lines) > 1:  # the reason is below it
+        message = f"{message} {lines[1].rstrip('.')}"
+        key = next((line for line in lines if line.startswith("full_key:")), None)
+        if key is not None:
+            message = f"{message} (key {key.removeprefix('full_key:').strip()})"
     cause = error.__cause__
     if isinstance(cause, OmegaConfBaseException):
         reason = (cause.msg or "").strip().splitlines()

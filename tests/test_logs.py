@@ -323,3 +323,109 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
         InputChannel("throttle"),
         InputChannel("brake_mpa"),
     )
+
+
+def test_logs_the_plant_made_are_tracked_on_it_when_the_user_says_so(tmp_path: Path) -> None:
+    """Drives of our sedan exported as CSV and read back through a user's YAML (the one file a
+    user writes, found with ``-cd``): with ``task.logs_from_plant=true`` the pipeline runs the
+    step responses and DE-MPC on the plant, as it does on collected drives."""
+    from harness.data.driver import DriverKnowledge
+    from harness.data.store import DataConfig, drive_episode
+    from harness.plant import Sedan
+
+    plant = Sedan()
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for index in range(4):
+        d = drive_episode(plant, DataConfig(), DriverKnowledge.of(plant.params), index, 800)
+        table = np.column_stack([d["time_s"], d["states"], d["inputs"], d["poses"]])
+        header = "t,vx,vy,r,steer_wheel_deg,pedal,X,Y,yaw"
+        np.savetxt(logs / f"drive_{index}.csv", table, delimiter=",", header=header, comments="")
+    conf = tmp_path / "conf" / "data"
+    conf.mkdir(parents=True)
+    (conf / "sedan_logs.yaml").write_text(
+        "defaults:\n  - logs_schema\n  - _self_\nname: sedan_logs\n"
+        f"path: {logs}\nfiles: ['drive_*.csv']\ntime: {{column: t}}\n"
+        "states: {vx: {column: vx}, vy: {column: vy}, yaw_rate: {column: r}}\n"
+        "inputs: {steer_wheel_deg: {column: steer_wheel_deg}, pedal: {column: pedal}}\n"
+        "poses: {X: {column: X}, Y: {column: Y}, yaw: {column: yaw}}\n"
+        "split: {train: [drive_0.csv, drive_1.csv], validation: [drive_2.csv], "
+        "test: [drive_3.csv]}\n"
+        f"root: {tmp_path / 'store'}\n"
+    )
+    run_dir = tmp_path / "run"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "harness",
+            "-cd",
+            str(tmp_path / "conf"),
+            "data=sedan_logs",
+            "task.logs_from_plant=true",
+            "learner=input_edmd",
+            "learner.dictionary.num_centers=20",
+            "recorder=none",
+            "controller=de_mpc",  # beside it the baseline only
+            *(
+                f"~controller@task.extra_controllers.{name}"
+                for name in (
+                    "de_mpc",
+                    "bicycle_mpc_path_long_offset_free",
+                    "de_mpc_offset_free",
+                    "bicycle_mpc_offset_free",
+                    "de_mpc_path",
+                    "bicycle_mpc_path",
+                )
+            ),
+            "~reference@task.references.double_lane_change",
+            f"hydra.run.dir={run_dir}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["data"]["source"] == "logs"
+    assert "skipped" not in metrics["prediction"]["step_response"]
+    assert "skipped" not in metrics["tracking"]
+    assert np.isfinite(list(metrics["tracking"]["rmse"].values())).all()
+    assert metrics["tracking"]["references"]["test_episode/drive_3"]["rmse"]
+    assert set(metrics["tracking"]["controllers"]) == {"de_mpc", "bicycle_mpc"}
+
+    # A column given as a bare name where the schema wants {column: ...}: one line, its key.
+    yaml = conf / "sedan_logs.yaml"
+    yaml.write_text(yaml.read_text().replace("vy: {column: vy}", "vy: vy"))
+    bad = subprocess.run(
+        [sys.executable, "-m", "harness", "-cd", str(tmp_path / "conf"), "data=sedan_logs"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert bad.returncode != 0
+    assert bad.stderr.strip().splitlines()[-1].endswith("(key data.states.vy)"), bad.stderr
+
+
+@pytest.mark.parametrize(
+    ("period_s", "names", "message"),
+    [
+        (0.05, ("steer_wheel_deg", "pedal"), "set data.model_period_s=0.01 or plant."),
+        (0.01, ("steer", "throttle", "brake"), "inputs are steer, throttle, brake; the plant"),
+    ],
+)
+def test_logs_that_cannot_drive_the_plant_are_refused_in_one_line(
+    period_s: float, names: tuple[str, ...], message: str
+) -> None:
+    from types import SimpleNamespace
+
+    from harness.plant import Sedan
+    from harness.tasks.pipeline import check_logs_drive
+
+    episode = SimpleNamespace(channels=tuple(InputChannel(name) for name in names))
+    dataset = SimpleNamespace(period_s=period_s, train=[episode])
+    with pytest.raises(ValueError, match=r"task\.logs_from_plant") as error:
+        check_logs_drive(Sedan(), dataset, "my_logs")  # type: ignore[arg-type]
+    assert message in str(error.value) and "\n" not in str(error.value)

@@ -44,7 +44,7 @@ import numpy as np
 from controllers.as_controlled import AsControlled
 from controllers.config import ControllerFactory, OwnModelFactory
 from harness.core.checks import integer, is_number
-from harness.core.contracts import LiftedModel, Model, dynamics_of
+from harness.core.contracts import INPUT_NAMES, LiftedModel, Model, dynamics_of
 from harness.core.episode import Episode
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
@@ -92,6 +92,7 @@ class Pipeline:
         prediction_window_s: float | Sequence[float] = 10.0,
         references: Mapping[str, Reference] | None = None,
         robustness_repeats: int = 100,
+        logs_from_plant: bool = False,
     ) -> None:
         self.data = data_config(data)
         self.learner, self.learner_name = learner, learner_name
@@ -132,6 +133,9 @@ class Pipeline:
         self.references = references
         integer("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
+        if not isinstance(logs_from_plant, bool):
+            raise ValueError(f"task.logs_from_plant must be true or false (got {logs_from_plant})")
+        self.logs_from_plant = logs_from_plant
 
     @staticmethod
     def _load(path: str | None, learner: Learner, learner_name: str) -> Learner | None:
@@ -145,10 +149,14 @@ class Pipeline:
     def __call__(self, plant: Sedan, recorder: Recorder, output_dir: Path) -> dict[str, Any]:
         """Data, fit, predictions and spectrum; then, on drives of ``plant``, step responses,
         tracking and other plants. On a user's logs those need the car that made the logs and
-        are skipped, each named in one line saying why; the spectrum is at the logs' period."""
+        are skipped, each named in one line saying why, unless the user says ``plant`` made
+        them (``task.logs_from_plant``); the spectrum is at the logs' period."""
         dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
         logs = dataset.from_logs
-        if not logs:
+        on_plant = not logs or self.logs_from_plant
+        if logs and self.logs_from_plant:
+            check_logs_drive(plant, dataset, self.data.name)
+        if on_plant:
             data_metrics |= reference_speeds(self.references, plant.dt, dataset)
         if self.loaded is None:
             if logs:  # sized by the logs once they are read, still before the fit
@@ -159,7 +167,7 @@ class Pipeline:
         learner, sections["training"] = self._learner(dataset, this_run, recorder, output_dir)
         prediction = self._predict(learner, dataset.test, recorder, output_dir)
         sections["prediction"] = prediction
-        if not logs:
+        if on_plant:
             prediction["step_response"] = self._step_response(learner, plant, recorder, output_dir)
         period = dataset.period_s if logs else plant.dt
         sections["spectrum"] = self._spectrum(learner, period, recorder, output_dir)
@@ -172,7 +180,7 @@ class Pipeline:
                 output_dir=output_dir,
             )
             sections["robustness"] = _one_learner(repeated, self.learner_name)
-        if logs:
+        if not on_plant:
             return sections | self._skipped_on_logs(prediction)
         models = self._controller_models(learner, dataset)
         tracking = self._track(models, learner, plant, dataset.test, recorder, output_dir)
@@ -189,7 +197,7 @@ class Pipeline:
         """What a run on logs leaves out, each section's ``skipped`` saying why (one line)."""
         why = (
             f"data={self.data.name} are logs, not drives of this harness's plant; this needs "
-            "the car that made them"
+            "the car that made them (task.logs_from_plant=true if plant= is that car)"
         )
         prediction["step_response"] = {"skipped": why}
         skipped: dict[str, Any] = {}
@@ -473,6 +481,27 @@ def _not_lifted_linear(learner: Learner) -> str | None:
     except ValueError as error:  # it declares dynamics it lacks the members of (unfitted)
         return f"is not a model a controller reads ({error})"
     return None if dynamics else "is not a model a controller reads (it declares no dynamics)"
+
+
+def check_logs_drive(plant: Sedan, dataset: Dataset, name: str) -> None:
+    """Logs said to come from ``plant`` can drive it: the model's period is the plant's control
+    period and its inputs are the plant's, by name and in its units.
+
+    Raises:
+        ValueError: (one line) naming what differs and what to set.
+    """
+    if not math.isclose(dataset.period_s, plant.dt, rel_tol=1e-9):
+        raise ValueError(
+            f"task.logs_from_plant: data={name} is at a period of {dataset.period_s:g} s but the "
+            f"plant's controllers step every {plant.dt:g} s: set data.model_period_s={plant.dt:g} "
+            f"or plant.control_period_s={dataset.period_s:g}"
+        )
+    names = tuple(channel.name for channel in dataset.train[0].channels)
+    if names != INPUT_NAMES:
+        raise ValueError(
+            f"task.logs_from_plant: data={name}'s inputs are {', '.join(names)}; the plant takes "
+            f"{', '.join(INPUT_NAMES)} (in its units): name the log's input columns so"
+        )
 
 
 def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str, Any]:
