@@ -8,8 +8,11 @@ CSVs and figures into ``docs/results/<study>/``. Every number in a result table 
 the docs comes from there; ``tests/test_studies.py`` re-renders every study and fails when a
 committed table differs from its data, so a hand-copied number cannot drift.
 
-    python -m harness.report.studies            # re-render every study
+    python -m harness.report.studies            # re-render every study and the README's headline
     python -m harness.report.studies ddk_carsim # one
+
+The README's headline table is generated from one study too (``headline.py``): rewritten here
+after the studies, checked by the same test.
 """
 
 from __future__ import annotations
@@ -23,9 +26,11 @@ from pathlib import Path
 from harness.core.files import write_text_atomic
 from harness.core.paths import REPO_ROOT
 from harness.report import report
+from harness.report.headline import STUDY, update_readme
 
-__all__ = ["DOCS_DIR", "RESULTS_DIR", "render", "studies"]
+__all__ = ["DOCS_DIR", "README", "RESULTS_DIR", "render", "studies"]
 
+README = REPO_ROOT / "README.md"
 RESULTS_DIR = REPO_ROOT / "results"
 DOCS_DIR = REPO_ROOT / "docs" / "results"
 DESCRIPTION = "README.md"  # in the study's folder: what was run, how, when, on what machine
@@ -77,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {study} is not a study (no {DESCRIPTION})", file=sys.stderr)
             return 2
         print(render(study))
+    if (RESULTS_DIR / STUDY) in chosen:
+        changed = update_readme(README, RESULTS_DIR / STUDY)
+        print(f"{README}: headline {'rewritten' if changed else 'unchanged'} from results/{STUDY}")
     return 0
 
 
