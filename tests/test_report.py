@@ -15,6 +15,7 @@ import pytest
 from harness.core.files import try_lock
 from harness.report import Run, load, main, read_runs, report
 from harness.report.figures import loss_figure
+from harness.report.jobs import NEVER_STARTED
 from harness.report.summary import summary
 from harness.report.tables import (
     course_speed_table,
@@ -143,6 +144,8 @@ def test_a_killed_sweep_counts_the_jobs_it_never_started_and_its_rerun_leaves_no
     failures = (copy / "report" / "failures.csv").read_text().replace('"', "")
     assert f"{killed.name},no metrics.json" in failures
     assert f"{never.name},never started" in failures
+    (unstarted,) = [r for r in read_runs(copy) if r.error == NEVER_STARTED]
+    assert (unstarted.learner, unstarted.seed) == ("elm_edmd", 1)  # named by its overrides
     assert not half_written.exists()  # left by a killed writer: removed once no run holds it
     assert not (copy / "report" / "stale.png").exists()
 

@@ -84,7 +84,8 @@ class Run:
         return self._choice("controller")
 
     def _choice(self, group: str) -> str:
-        return str(self.choices.get(group) or "—")
+        """Hydra's choice for ``group``; for a job that never started, its override."""
+        return str(self.choices.get(group) or self.overrides.get(group) or "—")
 
 
 def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
@@ -192,7 +193,12 @@ def read_runs(sweep_dir: Path) -> list[Run]:
             continue
         started = [r.overrides for r in runs if _sweep_of(r.path) == multirun.parent]
         runs += [
-            Run(multirun.parent / name, overrides=overrides, error=NEVER_STARTED)
+            Run(
+                multirun.parent / name,
+                overrides=overrides,
+                seed=int(overrides.get("seed", "0")),
+                error=NEVER_STARTED,
+            )
             for name, overrides in jobs
             if overrides not in started and not (multirun.parent / name / HYDRA_FILE).exists()
         ]
