@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.report.headline import BEGIN, LANE_CHANGE, PAPER, STUDY, headline, replace_block
+from harness.report.headline import BLOCKS, LANE_CHANGE, PAPER, begin, headline, replace_blocks
 from harness.report.studies import DOCS_DIR, README, RESULTS_DIR, render, studies
 
 STUDIES = studies()
@@ -49,18 +49,20 @@ def test_a_number_changed_in_a_study_changes_its_tables(tmp_path: Path) -> None:
     assert changed != (DOCS_DIR / f"{study.name}.md").read_text()
 
 
-def test_the_readmes_headline_table_is_its_studys_data() -> None:
+@pytest.mark.parametrize("name", BLOCKS)
+def test_every_generated_table_of_the_readme_is_its_studys_data(name: str) -> None:
     text = README.read_text()
-    assert BEGIN.format(study=STUDY) in text, "the README has no headline block"
-    assert replace_block(text, RESULTS_DIR / STUDY) == text, (
-        "the README's headline differs from its data: run python -m harness.report.studies"
+    assert begin(name, BLOCKS[name][0]) in text, f"the README has no {name} block"
+    assert replace_blocks(text, RESULTS_DIR) == text, (
+        "the README's generated tables differ from their data: run python -m harness.report.studies"
     )
 
 
 def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path) -> None:
     """The check above can fail: one seed's 80 km/h pass turned into a fail moves its cell."""
-    study = tmp_path / STUDY
-    shutil.copytree(RESULTS_DIR / STUDY, study, ignore=shutil.ignore_patterns("report"))
+    source = RESULTS_DIR / BLOCKS["headline"][0]
+    study = tmp_path / source.name
+    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
     before = headline(study)
     job = next(p.parent for p in sorted(study.rglob("metrics.json")) if "input_edmd" in str(p))
     metrics = json.loads((job / "metrics.json").read_text())
@@ -70,7 +72,7 @@ def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path)
     assert headline(study) != before
 
 
-def test_a_readme_without_a_headline_block_is_refused_in_one_line() -> None:
-    with pytest.raises(ValueError, match="no headline block") as error:
-        replace_block("# a README\n", RESULTS_DIR / STUDY)
+def test_a_readme_without_a_generated_block_is_refused_in_one_line() -> None:
+    with pytest.raises(ValueError, match="no generated block") as error:
+        replace_blocks("# a README\n", RESULTS_DIR)
     assert "\n" not in str(error.value)

@@ -11,7 +11,7 @@ committed table differs from its data, so a hand-copied number cannot drift.
     python -m harness.report.studies            # re-render every study and the README's headline
     python -m harness.report.studies ddk_carsim # one
 
-The README's headline table is generated from one study too (``headline.py``): rewritten here
+The README's result tables are generated from studies too (``headline.py``): rewritten here
 after the studies, checked by the same test.
 """
 
@@ -26,7 +26,7 @@ from pathlib import Path
 from harness.core.files import write_text_atomic
 from harness.core.paths import REPO_ROOT
 from harness.report import report
-from harness.report.headline import STUDY, update_readme
+from harness.report.headline import BLOCKS, update_readme
 
 __all__ = ["DOCS_DIR", "README", "RESULTS_DIR", "render", "studies"]
 
@@ -82,9 +82,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {study} is not a study (no {DESCRIPTION})", file=sys.stderr)
             return 2
         print(render(study))
-    if (RESULTS_DIR / STUDY) in chosen:
-        changed = update_readme(README, RESULTS_DIR / STUDY)
-        print(f"{README}: headline {'rewritten' if changed else 'unchanged'} from results/{STUDY}")
+    if any(RESULTS_DIR / study in chosen for study, _ in BLOCKS.values()):
+        changed = update_readme(README, RESULTS_DIR)
+        print(f"{README}: its generated tables {'rewritten' if changed else 'unchanged'}")
     return 0
 
 
