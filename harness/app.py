@@ -31,7 +31,7 @@ from harness.core.files import (
 from harness.core.paths import CONF_DIR
 from harness.output import update_metrics
 from harness.report.jobs import NEUTRAL, job_dirname
-from harness.report.summary import summary
+from harness.report.summary import summary, title
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,8 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
     log.info("wrote %s (%s)", output_dir / "metrics.json", ", ".join(document))
     if "tracking" in document or "prediction" in document:
         choices = HydraConfig.get().runtime.choices
-        title = f"{choices.get('learner')}, seed {cfg.get('seed')}, on {choices.get('plant')}:"
-        log.info("summary of %s\n%s", output_dir, summary(document, title))
+        heading = title(choices.get("learner"), cfg.get("seed"), choices.get("plant"))
+        log.info("summary of %s\n%s", output_dir, summary(document, heading))
     return sections
 
 

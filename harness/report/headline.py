@@ -27,7 +27,7 @@ import pandas as pd
 from harness.core.files import write_text_atomic
 from harness.report.frame import load
 from harness.report.jobs import read_runs
-from harness.report.summary import summary
+from harness.report.summary import summary, title
 
 __all__ = ["BLOCKS", "begin", "end", "headline", "main_job", "replace_blocks", "update_readme"]
 
@@ -126,8 +126,7 @@ def main_job_output(study: Path) -> str:
     )
     if run is None or run.metrics is None:
         raise ValueError(f"{study} holds no finished {MAIN_LEARNER} job of seed 0")
-    title = f"{run.learner}, seed {run.seed}, on {run.plant}:"
-    return f"```\n{summary(run.metrics, title)}\n```"
+    return f"```\n{summary(run.metrics, title(run.learner, run.seed, run.plant))}\n```"
 
 
 Block = tuple[str, Callable[[Path], str]]

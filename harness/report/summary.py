@@ -18,6 +18,11 @@ from typing import Any
 STATES = ("vx", "vy", "yaw_rate")
 
 
+def title(learner: object, seed: object, plant: object) -> str:
+    """The summary's first line: which model, seed and plant the run was."""
+    return f"{learner}, seed {seed}, on {plant}:"
+
+
 def summary(metrics: Mapping[str, Any], title: str = "") -> str:
     """The lines to print at the end of a pipeline run (empty without prediction or tracking)."""
     lines = [title] if title else []
