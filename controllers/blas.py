@@ -12,8 +12,6 @@ and restores the previous count (no new dependency: the libraries' own setters, 
 from __future__ import annotations
 
 import ctypes
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -54,15 +52,23 @@ def _openblas() -> list[tuple[Any, Any]]:
     return _libraries
 
 
-@contextmanager
-def single_threaded() -> Iterator[None]:
-    """Every loaded OpenBLAS at one thread inside the block (a no-op where none is found)."""
-    libraries = _openblas()
-    before = [int(get()) for _, get in libraries]
-    for set_threads, _ in libraries:
-        set_threads(1)
-    try:
-        yield
-    finally:
-        for (set_threads, _), count in zip(libraries, before, strict=True):
-            set_threads(count)
+class single_threaded:  # noqa: N801  (used as a function: ``with single_threaded():``)
+    """Every loaded OpenBLAS at one thread inside the block (a no-op where none is found).
+
+    A class, not a generator: it is entered twice in every control step, and the generator
+    machinery of ``contextmanager`` cost as much as the thread switch; a library already at
+    one thread is left alone."""
+
+    __slots__ = ("_before",)
+
+    def __enter__(self) -> None:
+        libraries = _openblas()
+        self._before = [int(get()) for _, get in libraries]
+        for (set_threads, _), count in zip(libraries, self._before, strict=True):
+            if count != 1:
+                set_threads(1)
+
+    def __exit__(self, *_: object) -> None:
+        for (set_threads, _), count in zip(_openblas(), self._before, strict=True):
+            if count != 1:
+                set_threads(count)

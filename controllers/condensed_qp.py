@@ -309,14 +309,15 @@ class CondensedQP:
     def solve(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
         """The QP's optimum for lifted state z, previous input v_prev, references y_ref (n Np,)."""
         x_u = self.unconstrained(z, v_prev, y_ref)
-        if not np.all(np.isfinite(x_u)):  # every comparison with NaN is False: refuse it here
+        if not np.isfinite(x_u).all():  # every comparison with NaN is False: refuse it here
             return QPSolution(np.zeros((self.Nc, self.m)), 0.0, "failed", 0, PREDICTION_NOT_FINITE)
-        r = self.residual(x_u, v_prev)
+        b = self.bounds(v_prev)
+        r = self.G @ x_u - b  # the residual, with b kept for DAQP
         if not (r > self.tol).any():
             self._guess[:] = False
             return self._solution(x_u, "unconstrained", 0, "solved")
         if self.active_set and self.qp_solver == "daqp":
-            answer = self._solve_daqp(x_u, v_prev)
+            answer = self._solve_daqp(x_u, b)
             if answer is not None:
                 x, iterations = answer
                 return self._solution(x, "daqp", iterations, "solved")
@@ -334,17 +335,20 @@ class CondensedQP:
             self._guess = self.residual(x, v_prev) > -10 * self.tol
         return solution
 
-    def _solve_daqp(self, x_u: np.ndarray, v_prev: np.ndarray) -> tuple[np.ndarray, int] | None:
-        """DAQP on min ½‖y‖² + fᵀy s.t. (G L⁻ᵀ) y <= b (y = Lᵀx), warm-started from its last
-        working set. Returns (x, iterations) at a KKT point to ``tol``, or None (PIQP's turn;
-        the next DAQP solve then starts cold)."""
+    def _daqp_cost(self, x_u: np.ndarray) -> np.ndarray:
+        """f = L⁻¹c = -Lᵀx_u of DAQP's form (ε's entry 0)."""
         M = self._M
+        assert self._p_factor is not None  # _ensure_daqp built it
+        f = np.zeros(M + 1)
+        f[:M] = -dtrmv(self._p_factor, x_u[:M], lower=1, trans=1)
+        return f
+
+    def _solve_daqp(self, x_u: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """DAQP on min ½‖y‖² + fᵀy s.t. (G L⁻ᵀ) y <= b (y = Lᵀx, b: :meth:`bounds`),
+        warm-started from its last working set. Returns (x, iterations) at a KKT point to
+        ``tol``, or None (PIQP's turn; the next DAQP solve then starts cold)."""
         self._ensure_daqp()
-        factor = self._p_factor
-        assert factor is not None  # _ensure_daqp built it
-        f = np.zeros(M + 1)  # ε_u = 0
-        f[:M] = -dtrmv(factor, x_u[:M], lower=1, trans=1)  # L⁻¹c = -Lᵀx_u
-        b = self.bounds(v_prev)
+        f = self._daqp_cost(x_u)
         if self._daqp is None:
             self._daqp = self._daqp_setup(f, b)
             if self._daqp is None:

@@ -397,22 +397,26 @@ class DEMPC:
         if where is not None and self.path_qp is not None:
             qp = self.path_qp  # a lifted-linear model's may be another band's now
         self._prepared = None
+        if solution.ok:  # the first move only: the plan's rest waits until the input is out
+            first = v_prev + solution.dv[0]
+        else:
+            plan, dv = self._fallback(v_prev)
+            first = plan[0]
+        u = np.clip(self.normalizer.inputs_inverse(first), self.u_min, self.u_max)
+        # The input is ready: the rest is bookkeeping for the next step and the record, work of
+        # the period after the input is sent (the harness times the feedback phase to here).
+        ready = time.perf_counter()
         if solution.ok:
             self._plan = v_prev + np.cumsum(solution.dv, axis=0)
             self._plan_step = 1
             plan, dv = self._plan, solution.dv
         else:
-            plan, dv = self._fallback(v_prev)
             log.warning(
                 "DE-MPC solve failed at t = %.2f s (%s); applying the previous plan's next move",
                 t,
                 solution.status,
             )
         self._v_prev = plan[0]
-        u = np.clip(self.normalizer.inputs_inverse(plan[0]), self.u_min, self.u_max)
-        # The input is ready: the rest is bookkeeping for the next step and the record, work of
-        # the period after the input is sent (the harness times the feedback phase to here).
-        ready = time.perf_counter()
         if w is not None:
             # The next measurement's prediction: under delay, the state the plan started from.
             self._z_expected = z if self.delay_steps else self._model_step(z, plan[0]) + w
