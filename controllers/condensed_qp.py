@@ -69,6 +69,25 @@ SMALL_LIFT = 16
 PREDICTION_NOT_FINITE = "prediction_not_finite"
 
 
+def _block_diagonal(block: np.ndarray, count: int) -> np.ndarray:
+    """kron(I_count, block) without kron's (count·m)² products of zeros (a fifth of a band
+    QP's construction at 60/50)."""
+    m = block.shape[0]
+    blocks = np.zeros((count, m, count, m))
+    index = np.arange(count)
+    blocks[index, :, index, :] = block
+    return blocks.reshape(count * m, count * m)
+
+
+def _block_cumulative(count: int, m: int) -> np.ndarray:
+    """kron(tril(ones(count)), I_m): v_{t-1} + this · ΔV are the inputs over the horizon."""
+    cumulative = np.zeros((count, m, count, m))
+    lower = np.tril(np.ones((count, count)))
+    for channel in range(m):
+        cumulative[:, channel, :, channel] = lower
+    return cumulative.reshape(count * m, count * m)
+
+
 @dataclass(frozen=True)
 class QPSolution:
     """One solve: the increments, the slack, how it was found and whether to trust it."""
@@ -159,6 +178,9 @@ class CondensedQP:
         self.active_set, self.qp_solver = active_set, qp_solver
         self._daqp: daqp.Model | None = None  # set up at its first solve, warm from then on
         self._daqp_rows_new = False  # rows built that DAQP has not received yet
+        # Whether P is the model's (a time-varying QP's placeholder P, before its first Θ, is
+        # not worth DAQP's workspace: every Θ replaces its rows).
+        self._has_model = True
         self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
         self.dv_max = np.asarray(dv_max, float)
 
@@ -193,7 +215,7 @@ class CondensedQP:
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
         q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, n, M)).reshape(n * Np, M)
         self._theta_q = np.ascontiguousarray(q_theta.T)  # ΘᵀQ, (M, n Np)
-        hessian = self.theta.T @ q_theta + np.kron(np.eye(Nc), self._R)
+        hessian = self.theta.T @ q_theta + _block_diagonal(self._R, Nc)
         self.P = np.zeros((M + 1, M + 1))
         self.P[:M, :M] = 2 * hessian
         self.P[M, M] = 2 * self.rho
@@ -206,7 +228,7 @@ class CondensedQP:
         """Rows G x <= b (b moves with v_{t-1}): they depend on the limits, never on the model."""
         m, Nc, M = self.m, self.Nc, self.m * self.Nc
         inv_rate = np.tile(1.0 / self.dv_max, Nc)
-        cumulative = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(m))
+        cumulative = _block_cumulative(Nc, m)
         G = np.zeros((4 * M + 1, M + 1))
         G[:M, :M], G[:M, M] = np.diag(inv_rate), -1.0
         G[M : 2 * M, :M], G[M : 2 * M, M] = -np.diag(inv_rate), -1.0
@@ -233,14 +255,16 @@ class CondensedQP:
         # (more rows than unknowns); the result is checked against tol all the same.
         self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
 
-    def _build_piqp(self, max_iter: int) -> None:
-        """The same QP in x_V = [V; ε] with ΔV = D V - E v_{t-1}: V bounds become box bounds."""
+    def _build_piqp(self, max_iter: int, hessian: bool = True) -> None:
+        """The same QP in x_V = [V; ε] with ΔV = D V - E v_{t-1}: V bounds become box bounds
+        (``hessian``: P_V now; a time-varying QP builds it when PIQP is asked)."""
         m, Nc, M = self.m, self.Nc, self.m * self.Nc
         difference = np.eye(M) - np.eye(M, k=-m)
         T = np.zeros((M + 1, M + 1))
         T[:M, :M], T[M, M] = difference, 1.0
         self._T = T
-        self._P_V = np.asfortranarray(T.T @ self.P @ T)
+        if hessian:
+            self._P_V = np.asfortranarray(T.T @ self.P @ T)
         rate = self._inv_rate[:, None] * difference
         ones = np.ones((M, 1))
         # Upper rows  ΔV/Δv_max - ε <= 1, lower rows  ΔV/Δv_max + ε >= -1 (one-sided each).
@@ -267,15 +291,18 @@ class CondensedQP:
         """Forget the previous active set (a new run starts cold)."""
         self._guess[:] = False
         self._daqp = None
-        if self.active_set and self.qp_solver == "daqp":
+        if self.active_set and self.qp_solver == "daqp" and self._has_model:
             self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
 
     def prepare_solvers(self) -> None:
         """Build now what the active-set solver would build at its first constrained solve
-        (DAQP's rows G L⁻ᵀ): the real-time iteration's preparation, before the measurement."""
+        (DAQP's rows G L⁻ᵀ, its workspace): the real-time iteration's preparation, before the
+        measurement."""
         if self.active_set and self.qp_solver == "daqp":
             self._ensure_daqp()
-            if self._daqp is not None and self._daqp_rows_new:
+            if self._daqp is None:  # a new QP, or one whose last DAQP solve failed: cold
+                self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
+            elif self._daqp_rows_new:
                 # DAQP takes the new rows now (its LDP form, its working set refactored: 0.2-0.3
                 # ms at 60/50), so that the feedback phase only updates f and b.
                 self._daqp.update(A=self._daqp_rows)
@@ -610,10 +637,11 @@ class TimeVaryingQP(CondensedQP):
         qp_solver: str = "daqp",
     ) -> None:
         self._configure(C, inputs, Np, Nc, rho, v_min, v_max, dv_max, tol, active_set, qp_solver)
+        self._has_model = False  # until the first Θ (set_model, set_prediction_matrix)
         self.active_set_max_iter = active_set_max_iter
         self.C = np.ascontiguousarray(C, dtype=float)
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
-        self._R_blocks = np.kron(np.eye(Nc), self._R)
+        self._R_blocks = _block_diagonal(self._R, Nc)
         M = self.m * Nc
         # Until the first set_model: a model without input effect (P = 2 diag(R, ρ)).
         self.theta = np.zeros((self.n * Np, M))
@@ -621,7 +649,7 @@ class TimeVaryingQP(CondensedQP):
         self.P[:M, :M], self.P[M, M] = 2 * self._R_blocks, 2 * self.rho
         self.P = np.asfortranarray(self.P)
         self._build_constraints()
-        self._build_piqp(max_iter)
+        self._build_piqp(max_iter, hessian=False)
         self._piqp.settings.preconditioner_reuse_on_update = False  # P changes every step
         self._guess = np.zeros(self.rows, dtype=bool)
         self._p_factor = None  # the factor of P's first M rows, with each new P
@@ -631,7 +659,7 @@ class TimeVaryingQP(CondensedQP):
         self._d = np.zeros((Np, self.N))
         self._gain = np.zeros((M, self.n * Np))
         self._dual_ready = False
-        self._piqp_hessian_ready = True  # _build_piqp built it from the initial P
+        self._piqp_hessian_ready = False  # P_V, built when PIQP is first asked
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
         self._given_free: np.ndarray | None = None
@@ -726,6 +754,7 @@ class TimeVaryingQP(CondensedQP):
             raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
         self._p_factor = factor  # DAQP's L
+        self._has_model = True
         self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
         self._dual_ready = False
         self._daqp_rows_ready = False  # DAQP's rows G L⁻ᵀ, likewise
