@@ -178,9 +178,6 @@ class CondensedQP:
         self.active_set, self.qp_solver = active_set, qp_solver
         self._daqp: daqp.Model | None = None  # set up at its first solve, warm from then on
         self._daqp_rows_new = False  # rows built that DAQP has not received yet
-        # Whether P is the model's (a time-varying QP's placeholder P, before its first Θ, is
-        # not worth DAQP's workspace: every Θ replaces its rows).
-        self._has_model = True
         self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
         self.dv_max = np.asarray(dv_max, float)
 
@@ -291,8 +288,8 @@ class CondensedQP:
         """Forget the previous active set (a new run starts cold)."""
         self._guess[:] = False
         self._daqp = None
-        if self.active_set and self.qp_solver == "daqp" and self._has_model:
-            self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
+        if self.active_set and self.qp_solver == "daqp" and self._has_model():
+            self._daqp = self._daqp_cold()
 
     def prepare_solvers(self) -> None:
         """Build now what the active-set solver would build at its first constrained solve
@@ -301,12 +298,22 @@ class CondensedQP:
         if self.active_set and self.qp_solver == "daqp":
             self._ensure_daqp()
             if self._daqp is None:  # a new QP, or one whose last DAQP solve failed: cold
-                self._daqp = self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
+                self._daqp = self._daqp_cold()
             elif self._daqp_rows_new:
                 # DAQP takes the new rows now (its LDP form, its working set refactored: 0.2-0.3
                 # ms at 60/50), so that the feedback phase only updates f and b.
                 self._daqp.update(A=self._daqp_rows)
                 self._daqp_rows_new = False
+
+    def _has_model(self) -> bool:
+        """Whether P is the model's (a time-varying QP's placeholder P, before its first Θ, is
+        not worth DAQP's workspace: every Θ replaces its rows)."""
+        return True
+
+    def _daqp_cold(self) -> daqp.Model | None:
+        """A DAQP workspace with placeholder f = 0, b = 1 (y = 0 feasible): every solve updates
+        both, so building it before the first measurement costs the feedback nothing."""
+        return self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
 
     def _daqp_setup(self, f: np.ndarray, b: np.ndarray) -> daqp.Model | None:
         """A DAQP workspace for this QP's rows, cold (no active row); None if DAQP refuses.
@@ -637,7 +644,6 @@ class TimeVaryingQP(CondensedQP):
         qp_solver: str = "daqp",
     ) -> None:
         self._configure(C, inputs, Np, Nc, rho, v_min, v_max, dv_max, tol, active_set, qp_solver)
-        self._has_model = False  # until the first Θ (set_model, set_prediction_matrix)
         self.active_set_max_iter = active_set_max_iter
         self.C = np.ascontiguousarray(C, dtype=float)
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
@@ -715,6 +721,9 @@ class TimeVaryingQP(CondensedQP):
         self._free_maps = free_response_maps(A, B, d, self.C) if N <= SMALL_LIFT else None
         return theta
 
+    def _has_model(self) -> bool:
+        return self._p_factor is not None  # set with the first Θ (set_model, ...)
+
     def set_disturbance(self, w: np.ndarray | None) -> None:
         """A constant w (N,) added to every step of the model set last (z⁺ = A_k z + B_k v +
         d_k + w: offset-free), which moves the free response only: Θ and the Hessian stay."""
@@ -754,7 +763,6 @@ class TimeVaryingQP(CondensedQP):
             raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
         self._p_factor = factor  # DAQP's L
-        self._has_model = True
         self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
         self._dual_ready = False
         self._daqp_rows_ready = False  # DAQP's rows G L⁻ᵀ, likewise
