@@ -1,7 +1,11 @@
 """The paper's DNN baseline: an MLP M(x, u) -> next state, trained on multi-step rollouts.
 
-Network [n + m, 32, 64, 128, 128, 64, 32, n] (ReLU hidden layers, linear output) on normalized
-coordinates. Loss over windows of p = ``horizon`` steps (the paper's eq. for L_mlp, batch mean)::
+The paper's network is [n + m, 32, 64, 128, 128, 64, 32, n] (ReLU hidden layers, linear
+output) on normalized coordinates (``learner=dnn_paper``); ``learner=dnn`` uses [n + m, 128, 128,
+128, n] (ours): with our training the narrow, deep one predicts whole drives 3-6x worse
+(docs/learners.md, *The network's shape*).
+
+Loss over windows of p = ``horizon`` steps (the paper's eq. for L_mlp, batch mean)::
 
     x_hat_0 = x_0,   x_hat_i = M(x_hat_{i-1}, v_{i-1})          (x_hat_{i-1} + M(...) if residual)
     L_mlp = b_1/p sum_{i=1..p} ||x_i - x_hat_i||^2 + b_2/p sum_i ||x_i - x_hat_i||_inf

@@ -114,3 +114,19 @@ def check_linearization(learner: Learner, drive: Episode) -> None:
             np.testing.assert_allclose(jacobian[:, :, j], slope, atol=1e-4, err_msg=f"column {j}")
     exact = (A @ z[..., None])[..., 0] + (B @ v[..., None])[..., 0] + d
     np.testing.assert_allclose(exact, model.step(z, v), atol=1e-9)
+
+
+def test_the_paper_presets_keep_the_papers_table_where_our_defaults_depart_from_it() -> None:
+    """``learner=*_paper`` is the paper's Table of hyperparameters as written; the defaults are
+    ours (docs/learners.md), so a change to a default must not leak into the paper's preset."""
+    dnn, dnn_paper = learner_config("dnn"), learner_config("dnn_paper")
+    assert list(dnn_paper.hidden) == [32, 64, 128, 128, 64, 32]
+    assert list(dnn.hidden) != list(dnn_paper.hidden)  # ours: wider and shallower
+    for paper in (dnn_paper, learner_config("deep_edmd_paper")):
+        assert paper.horizon == 41 and paper.loss_scales is None
+        assert paper.training.lr == 1e-4 and paper.training.lr_schedule == "constant"
+        assert paper.training.max_steps == 100_000 and paper.training.selection == "window_loss"
+    assert dnn_paper.residual is False
+    deep_paper = learner_config("deep_edmd_paper")
+    assert list(deep_paper.encoder_hidden) == [32, 64] and deep_paper.lifted_dim == 10
+    assert list(deep_paper.decoder_hidden) == [128, 64, 32] and deep_paper.alpha.readout == 0.0
