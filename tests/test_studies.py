@@ -9,8 +9,17 @@ from pathlib import Path
 
 import pytest
 
-from harness.report.headline import BLOCKS, LANE_CHANGE, PAPER, begin, headline, replace_blocks
-from harness.report.studies import DOCS_DIR, README, RESULTS_DIR, render, studies
+from harness.core.paths import REPO_ROOT
+from harness.report.headline import (
+    BLOCKS,
+    LANE_CHANGE,
+    PAPER,
+    begin,
+    headline,
+    logs,
+    replace_blocks,
+)
+from harness.report.studies import DOCS_DIR, RESULTS_DIR, render, studies
 
 STUDIES = studies()
 
@@ -50,12 +59,32 @@ def test_a_number_changed_in_a_study_changes_its_tables(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("name", BLOCKS)
-def test_every_generated_table_of_the_readme_is_its_studys_data(name: str) -> None:
-    text = README.read_text()
-    assert begin(name, BLOCKS[name][0]) in text, f"the README has no {name} block"
+def test_every_generated_table_of_the_readme_and_docs_is_its_studys_data(name: str) -> None:
+    study, _, document = BLOCKS[name]
+    text = (REPO_ROOT / document).read_text()
+    assert begin(name, study) in text, f"{document} has no {name} block"
     assert replace_blocks(text, RESULTS_DIR) == text, (
-        "the README's generated tables differ from their data: run python -m harness.report.studies"
+        f"{document}'s generated tables differ from their data: run "
+        "python -m harness.report.studies"
     )
+
+
+def test_the_logs_table_counts_a_diverged_seed_instead_of_averaging_it(tmp_path: Path) -> None:
+    """One seed's whole run diverged: its learner's whole-run cells say so and average the
+    others; its windows (finite) still count every seed."""
+    source = RESULTS_DIR / BLOCKS["logs"][0]
+    study = tmp_path / source.name
+    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    before = logs(study)
+    job = study / "input_edmd_s0"
+    metrics = json.loads((job / "metrics.json").read_text())
+    metrics["prediction"][metrics["data"]["split"]["test"][0]]["diverged"] = True
+    (job / "metrics.json").write_text(json.dumps(metrics))
+    after = logs(study)
+    whole = after.split("**whole runs**")[1]
+    row = next(line for line in whole.splitlines() if line.startswith("| input_edmd |"))
+    assert row.count("(1 of 3 seeds diverged)") == 3
+    assert after.split("**whole runs**")[0] == before.split("**whole runs**")[0]
 
 
 def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path) -> None:

@@ -8,11 +8,14 @@
 - ``main job`` (from ``main_job``): what ``python -m harness`` gives per learner and controller
   over seeds: the test drives open loop, the 80 km/h lane change, the test drive tracked, and
   the time of a control step; ``main job output``: what its seed-0 run printed at its end.
+- ``logs`` (from ``ddk_carsim``, in docs/data.md): a study on driving logs, per learner: each
+  seed's mean over the test runs, then mean ± std over seeds, in 3 s and 1.5 s windows and over
+  whole runs, a seed whose run diverged counted and not averaged.
 
-Both are queries of :func:`harness.report.load` anyone can rerun. The README holds each between
-its ``<!-- NAME: generated ... -->`` line and ``<!-- NAME end -->``; :func:`update_readme`
-rewrites them (``python -m harness.report.studies`` does, after the studies), and
-``tests/test_studies.py`` fails when a committed block differs from its data.
+All are queries of :func:`harness.report.load` anyone can rerun. A document (:data:`BLOCKS`
+names which) holds each between its ``<!-- NAME: generated ... -->`` line and ``<!-- NAME end
+-->``; :func:`update_readme` rewrites them (``python -m harness.report.studies`` does, after the
+studies), and ``tests/test_studies.py`` fails when a committed block differs from its data.
 """
 
 from __future__ import annotations
@@ -29,7 +32,17 @@ from harness.report.frame import load
 from harness.report.jobs import read_runs
 from harness.report.summary import summary, title
 
-__all__ = ["BLOCKS", "begin", "end", "headline", "main_job", "replace_blocks", "update_readme"]
+__all__ = [
+    "BLOCKS",
+    "DOCUMENTS",
+    "begin",
+    "end",
+    "headline",
+    "logs",
+    "main_job",
+    "replace_blocks",
+    "update_readme",
+]
 
 MAIN = "de_mpc_path_long_offset_free"  # the main job's controller (conf/config.yaml)
 MAIN_LEARNER = "deep_edmd"  # the main job's learner
@@ -129,12 +142,75 @@ def main_job_output(study: Path) -> str:
     return f"```\n{summary(run.metrics, title(run.learner, run.seed, run.plant))}\n```"
 
 
-Block = tuple[str, Callable[[Path], str]]
+LOGS_WINDOWS = (("rmse_window_3s", "3 s windows"), ("rmse_window_1.5s", "1.5 s windows"))
+
+
+def logs(study: Path) -> str:
+    """The summary of a study on driving logs: per learner (persistence and the baseline
+    first), each seed's mean over the test runs, then mean ± std over seeds; a seed with a
+    diverged run is counted, not averaged. One table per measure, and the mean fit time."""
+    runs = load(study)
+    jobs = runs[runs["data.split.test"].apply(lambda v: isinstance(v, list))]
+    jobs = jobs.drop_duplicates("job")
+    learners = sorted(set(jobs.learner), key=lambda name: (name != "persistence", *_order(name)))
+    tables = []
+    for metric, label in (*LOGS_WINDOWS, ("rmse", "whole runs")):
+        lines = [
+            f"**{label}** (`prediction.<run>.{metric}`)",
+            "",
+            "| learner | seeds | vx (m/s) | vy (m/s) | yaw rate (rad/s) | fit (s) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for learner in learners:
+            own = jobs[jobs.learner == learner]
+            per_seed, diverged = [], 0
+            for _, job in own.iterrows():
+                episodes = job["data.split.test"]
+                if any(job.get(f"prediction.{e}.diverged") is True for e in episodes) and (
+                    metric == "rmse"
+                ):
+                    diverged += 1
+                    continue
+                per_seed.append(
+                    [
+                        sum(float(job[f"prediction.{e}.{metric}.{s}"]) for e in episodes)
+                        / len(episodes)
+                        for s in STATES
+                    ]
+                )
+            cells = [_spread([row[i] for row in per_seed], diverged, len(own)) for i in range(3)]
+            fit = own["training.fit_time_s"].astype(float).mean()
+            lines.append(f"| {learner} | {len(own)} | {' | '.join(cells)} | {fit:.0f} |")
+        tables.append("\n".join(lines))
+    return "\n\n".join(tables) + (
+        f"\n\nRMSE per seed: the mean over the test runs; then mean ± std (n − 1) over seeds "
+        f"{_seeds(jobs)}; fit: the fit alone, mean over seeds. From "
+        f"[results/{study.name}](results/{study.name}.md)."
+    )
+
+
+def _spread(values: list[float], diverged: int, seeds: int) -> str:
+    """``mean ± std`` over seeds (no ± for one value or none to speak of), and how many of the
+    seeds diverged."""
+    if not values:
+        return f"diverged ({diverged} of {seeds} seeds)"
+    mean = sum(values) / len(values)
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / max(len(values) - 1, 1))
+    # Seeds that give the same model (no randomness) differ by the order of a float sum only.
+    cell = f"{_number(mean)} ± {std:.2g}" if std > 1e-12 * abs(mean) else _number(mean)
+    return cell + (f" ({diverged} of {seeds} seeds diverged)" if diverged else "")
+
+
+# name: (study, how its block is made, the document that holds it, from the repository root)
+Block = tuple[str, Callable[[Path], str], str]
+
 BLOCKS: dict[str, Block] = {
-    "headline": ("lane_change_paper", headline),
-    "main job": ("main_job", main_job),
-    "main job output": ("main_job", main_job_output),
+    "headline": ("lane_change_paper", headline, "README.md"),
+    "main job": ("main_job", main_job, "README.md"),
+    "main job output": ("main_job", main_job_output, "README.md"),
+    "logs": ("ddk_carsim", logs, "docs/data.md"),
 }
+DOCUMENTS = tuple(dict.fromkeys(document for _, _, document in BLOCKS.values()))
 
 
 def begin(name: str, study: str) -> str:
@@ -162,7 +238,7 @@ def update_readme(readme: Path, results: Path) -> bool:
 def replace_blocks(text: str, results: Path) -> str:
     """``text`` with each block of :data:`BLOCKS` it holds regenerated from its study."""
     found = False
-    for name, (study, make) in BLOCKS.items():
+    for name, (study, make, _) in BLOCKS.items():
         pattern = re.compile(
             re.escape(begin(name, study)) + r"\n.*?" + re.escape(end(name)), re.DOTALL
         )

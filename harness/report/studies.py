@@ -11,8 +11,8 @@ committed table differs from its data, so a hand-copied number cannot drift.
     python -m harness.report.studies            # re-render every study and the README's headline
     python -m harness.report.studies ddk_carsim # one
 
-The README's result tables are generated from studies too (``headline.py``): rewritten here
-after the studies, checked by the same test.
+The README's result tables, and docs/data.md's of the driving logs, are generated from studies
+too (``headline.py``): rewritten here after the studies, checked by the same test.
 """
 
 from __future__ import annotations
@@ -82,9 +82,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {study} is not a study (no {DESCRIPTION})", file=sys.stderr)
             return 2
         print(render(study))
-    if any(RESULTS_DIR / study in chosen for study, _ in BLOCKS.values()):
-        changed = update_readme(README, RESULTS_DIR)
-        print(f"{README}: its generated tables {'rewritten' if changed else 'unchanged'}")
+    documents = {doc for study, _, doc in BLOCKS.values() if RESULTS_DIR / study in chosen}
+    for document in sorted(documents):
+        changed = update_readme(REPO_ROOT / document, RESULTS_DIR)
+        print(f"{document}: its generated tables {'rewritten' if changed else 'unchanged'}")
     return 0
 
 
