@@ -34,7 +34,6 @@ from harness.report.summary import summary, title
 
 __all__ = [
     "BLOCKS",
-    "DOCUMENTS",
     "begin",
     "end",
     "headline",
@@ -210,7 +209,6 @@ BLOCKS: dict[str, Block] = {
     "main job output": ("main_job", main_job_output, "README.md"),
     "logs": ("ddk_carsim", logs, "docs/data.md"),
 }
-DOCUMENTS = tuple(dict.fromkeys(document for _, _, document in BLOCKS.values()))
 
 
 def begin(name: str, study: str) -> str:
