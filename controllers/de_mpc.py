@@ -58,6 +58,12 @@ log = logging.getLogger(__name__)
 MODEL_NOT_FINITE = "model_not_finite"
 
 STATES, INPUTS = 3, 2
+PEDAL = 1  # the pedal's column of the inputs (steer_wheel_deg, pedal)
+# The brake's release (DEMPCConfig.release_brake): below what speed a plan that brakes may be
+# released (a brake acts at speed, and a linearisation there is right: only near a stop does its
+# effect vanish), and how far the reference's speed must lie above the car's (m/s).
+RELEASE_BELOW_MPS = 1.0
+RELEASE_MARGIN_MPS = 0.1
 # Where a time-varying model is linearised: at every point of the previous plan (exact along
 # the horizon), or at the current state and next input only, held over the horizon (frozen:
 # Θ from one step response: far cheaper for a large lift at 60/50, see docs/control.md).
@@ -154,6 +160,13 @@ class DEMPCConfig:
     # 0.8 ms, the DNN 2.4 -> 1.0 ms; docs/control.md). A lifted-linear model's QP never
     # changes, so its last working set is warm already: no presolve (it doubled its step).
     presolve: bool = True
+    # Linearised models: where the plan brakes while the car is nearly stopped (< 1 m/s) and the
+    # reference asks for more speed than it has, linearise at the pedal released (zero) (ours).
+    # At a stop under brake a model rightly says the pedal does nothing (braking cannot push a
+    # stopped car backwards), so a QP linearised there never leaves the brake: the main job's
+    # controller waited at every stop of a paper-scale test drive (docs/control.md, "The
+    # standstill trap").
+    release_brake: bool = True
 
     def __post_init__(self) -> None:
         key = "controller."
@@ -166,7 +179,13 @@ class DEMPCConfig:
             self.sqp_iterations,
         )
         integer(key + "max_iter", self.max_iter)
-        for flag in ("active_set", "offset_free", "real_time_iteration", "presolve"):
+        for flag in (
+            "active_set",
+            "offset_free",
+            "real_time_iteration",
+            "presolve",
+            "release_brake",
+        ):
             boolean(key + flag, getattr(self, flag))
         choice(key + "compute_delay", self.compute_delay, COMPUTE_DELAYS)
         choice(key + "linearization", self.linearization, LINEARIZATIONS)
@@ -285,6 +304,11 @@ class DEMPC:
         else:
             self.qp = TimeVaryingQP(C, INPUTS, **settings)
         self.C = C
+        self._pedal_zero = float(origin[PEDAL])  # the released pedal, normalized
+        vx_min = float(self.normalizer.state_min[0])
+        vx_span = max(float(self.normalizer.state_max[0]) - vx_min, 1e-9)
+        self._release_below = (RELEASE_BELOW_MPS - vx_min) / vx_span
+        self._release_margin = RELEASE_MARGIN_MPS / vx_span
         self.offset_free = bool(config.offset_free)
         self.offset_free_gain = float(config.offset_free_gain)
         self.delay_steps = COMPUTE_DELAYS[config.compute_delay]
@@ -574,6 +598,8 @@ class DEMPC:
         model = self.linearization
         assert model is not None
         guess = self._input_guess(v_prev)
+        if self.config.release_brake:
+            guess = self._brake_released(guess, z, y_ref)
         band = None if where is None else where[2]
         for iteration in range(self.sqp_iterations):
             if self.config.linearization == "frozen":
@@ -719,6 +745,23 @@ class DEMPC:
         if self._plan is None:
             return np.repeat(v_prev[None], self.Np, axis=0)
         return _held(self._plan[min(self._plan_step, self.Nc - 1) :], self.Np)
+
+    def _brake_released(self, guess: np.ndarray, z: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
+        """``guess`` with its pedal at zero on every step where it brakes while the car is
+        slower than RELEASE_BELOW_MPS and the reference's speed lies more than
+        RELEASE_MARGIN_MPS above it (normalized units throughout)."""
+        pedal_zero = self._pedal_zero
+        braking = guess[:, PEDAL] < pedal_zero
+        speed = float((self.C @ z)[0])
+        if speed >= self._release_below or not braking.any():
+            return guess
+        wanted = y_ref.reshape(self.Np, -1)[: len(guess), 0]
+        release = braking & (wanted > speed + self._release_margin)
+        if not release.any():
+            return guess
+        released = guess.copy()
+        released[release, PEDAL] = pedal_zero
+        return released
 
     def _fallback(self, v_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(plan, increments): the rest of the previous plan, held at its end, as the new plan

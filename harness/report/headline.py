@@ -145,13 +145,17 @@ LOGS_WINDOWS = (("rmse_window_3s", "3 s windows"), ("rmse_window_1.5s", "1.5 s w
 
 
 def logs(study: Path) -> str:
-    """The summary of a study on driving logs: per learner (persistence and the baseline
-    first), each seed's mean over the test runs, then mean ± std over seeds; a seed with a
-    diverged run is counted, not averaged. One table per measure, and the mean fit time."""
+    """The summary of a study on driving logs: per learner and variant (persistence and the
+    baseline first; a variant is the overrides its jobs add), each seed's mean over the test
+    runs, then mean ± std over seeds; a seed with a diverged run is counted, not averaged. One
+    table per measure, and the mean fit time."""
     runs = load(study)
     jobs = runs[runs["data.split.test"].apply(lambda v: isinstance(v, list))]
     jobs = jobs.drop_duplicates("job")
-    learners = sorted(set(jobs.learner), key=lambda name: (name != "persistence", *_order(name)))
+    rows = sorted(
+        set(zip(jobs.learner, jobs.variant, strict=True)),
+        key=lambda row: (row[0] != "persistence", *_order(row[0]), row[1] != "—", row[1]),
+    )
     tables = []
     for metric, label in (*LOGS_WINDOWS, ("rmse", "whole runs")):
         lines = [
@@ -160,8 +164,8 @@ def logs(study: Path) -> str:
             "| learner | seeds | vx (m/s) | vy (m/s) | yaw rate (rad/s) | fit (s) |",
             "|---|---|---|---|---|---|",
         ]
-        for learner in learners:
-            own = jobs[jobs.learner == learner]
+        for learner, variant in rows:
+            own = jobs[(jobs.learner == learner) & (jobs.variant == variant)]
             per_seed, diverged = [], 0
             for _, job in own.iterrows():
                 episodes = job["data.split.test"]
@@ -179,7 +183,8 @@ def logs(study: Path) -> str:
                 )
             cells = [_spread([row[i] for row in per_seed], diverged, len(own)) for i in range(3)]
             fit = own["training.fit_time_s"].astype(float).mean()
-            lines.append(f"| {learner} | {len(own)} | {' | '.join(cells)} | {fit:.0f} |")
+            name = learner if variant == "—" else f"{learner} ({variant})"
+            lines.append(f"| {name} | {len(own)} | {' | '.join(cells)} | {fit:.0f} |")
         tables.append("\n".join(lines))
     return "\n\n".join(tables) + (
         f"\n\nRMSE per seed: the mean over the test runs; then mean ± std (n − 1) over seeds "
