@@ -752,8 +752,10 @@ class DEMPC:
         RELEASE_MARGIN_MPS above it (normalized units throughout)."""
         pedal_zero = self._pedal_zero
         braking = guess[:, PEDAL] < pedal_zero
+        if not braking.any():
+            return guess
         speed = float((self.C @ z)[0])
-        if speed >= self._release_below or not braking.any():
+        if speed >= self._release_below:
             return guess
         wanted = y_ref.reshape(self.Np, -1)[: len(guess), 0]
         release = braking & (wanted > speed + self._release_margin)
