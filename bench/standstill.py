@@ -6,7 +6,8 @@ starts from rest, stops for 4.75 s at 22.4 s and drives off again at 27.2 s) on 
 each controller config of ``conf/controller/``, once with ``controller.release_brake=false`` and
 once with ``true``, and prints one Markdown row per run: the tracking RMSE, how long after the
 reference the car first passes 1 m/s at the start and after the stop, and the mean pedal over
-the last 0.2 s of the stop. A model is any ``model_<learner>.pt`` a run wrote (trained on
+the last 0.2 s of the stop; ``--figure PNG`` draws every run's vx against the reference. A model
+is any ``model_<learner>.pt`` a run wrote (trained on
 ``data=paper`` for the numbers in docs/control.md, "The standstill trap"). The dataset is
 collected into the cache on first use (about 10 minutes on 2 cores).
 """
@@ -41,6 +42,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("models", nargs="+", type=Path, help="model_<learner>.pt files")
     parser.add_argument("--controllers", default="de_mpc,de_mpc_path_long_offset_free")
     parser.add_argument("--steps", type=int, default=3600)
+    parser.add_argument("--figure", type=Path, help="draw vx of every run against the reference")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -70,6 +72,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         "restart lag s | pedal at the stop's end |"
     )
     print("|---|---|---|---|---|---|---|")
+    runs: dict[str, np.ndarray] = {}
     for path in args.models:
         model = load_model(path)
         for name in args.controllers.split(","):
@@ -90,11 +93,37 @@ def main(argv: Sequence[str] | None = None) -> None:
                 start = _lag(start_ref, _first_above(vx, 0), plant.dt)
                 restart = _lag(go_ref, _first_above(vx, STOP_END - 100), plant.dt)
                 held = pedal[STOP_END - 20 : STOP_END].mean()
+                runs[f"{path.stem}, {name}, release_brake={release}"] = vx
                 print(
                     f"| {path.stem} | {name} | {release} | {rmse} | {start} | {restart} | "
                     f"{held:+.2f} |",
                     flush=True,
                 )
+    if args.figure:
+        _draw(args.figure, reference[:, 0], runs, plant.dt)
+
+
+def _draw(path: Path, reference: np.ndarray, runs: dict[str, np.ndarray], dt: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models = sorted({label.split(",")[0] for label in runs})
+    fig, axes = plt.subplots(len(models), 1, figsize=(9, 3.2 * len(models)), squeeze=False)
+    t = np.arange(len(reference)) * dt
+    for ax, model in zip(axes[:, 0], models, strict=True):
+        ax.plot(t, reference, "k--", label="reference")
+        for label, vx in runs.items():
+            if label.startswith(model + ","):
+                ax.plot(t[: len(vx)], vx, label=label.split(", ", 1)[1])
+        ax.set_title(model)
+        ax.set_ylabel("vx [m/s]")
+        ax.legend(fontsize=7)
+    axes[-1, 0].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
