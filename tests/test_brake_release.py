@@ -19,6 +19,7 @@ from harness.core.contracts import Dynamics, LinearizableModel
 from harness.core.episode import MinMaxNormalizer
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
+from tests.toy_models import OwnModelPlant
 
 DT = 0.01
 THROTTLE_ACCEL = 3.0  # m/s² at full throttle (pedal feature +1)
@@ -77,36 +78,6 @@ class StoppingCar:
         return A, B, d
 
 
-class StoppingCarPlant:
-    """The toy car as a plant (the controller meets its own model)."""
-
-    dt = DT
-
-    def __init__(self, model: StoppingCar, vx0: float) -> None:
-        self.model, self.vx0 = model, vx0
-        self.reset()
-
-    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray:
-        del seed
-        self._z = self.model.lift(np.array([speed_mps or self.vx0, 0.0, 0.0]))
-        return self._state()
-
-    def step(self, u: np.ndarray) -> np.ndarray:
-        self._z = self.model.step(self._z, self.model.normalizer_.inputs(np.asarray(u)))
-        return self._state()
-
-    @property
-    def pose(self) -> np.ndarray:
-        return np.zeros(3)
-
-    @property
-    def fingerprint(self) -> dict[str, Any]:
-        return {"plant": "stopping_car"}
-
-    def _state(self) -> np.ndarray:
-        return self.model.normalizer_.states_inverse(self._z)
-
-
 def stop_and_go() -> np.ndarray:
     """3 m/s braked to a stop in 1 s, held for 1 s, then 1 m/s² for 3 s (to 3 m/s)."""
     t = np.arange(500) * DT
@@ -133,7 +104,7 @@ def test_a_stopped_car_starts_again_only_when_the_brake_is_released(horizons: di
     final = {}
     for release in (False, True):
         controller = DEMPC(model, DEMPCConfig(**horizons, release_brake=release))
-        plant = StoppingCarPlant(model, vx0=3.0)
+        plant = OwnModelPlant(model, x0=reference[0])
         _, run = track(plant, controller, reference, name="x", recorder=Recorder())
         states, inputs = np.asarray(run.states), np.asarray(run.inputs)
         assert states[:, 0].min() >= 0.0

@@ -5,7 +5,6 @@ closes the loop on it."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -22,6 +21,7 @@ from harness.tasks.pipeline import _not_lifted_linear
 from learners import DNN
 from learners.base import load as load_learner
 from learners.nets import Dense, NumpyMLP, mlp_apply
+from tests.toy_models import OwnModelPlant
 from tests.toydata import drive_episodes
 
 
@@ -104,34 +104,6 @@ def test_a_loaded_dnn_linearises_as_the_fitted_one(dnn: DNN, tmp_path: Path) -> 
     z, v = points(dnn, 3)
     for got, expected in zip(loaded.linearize(z, v), dnn.linearize(z, v), strict=True):
         np.testing.assert_array_equal(got, expected)
-
-
-class OwnModelPlant:
-    """A plant that is the model itself (a DNN, an input EDMD): the controller meets its own
-    model."""
-
-    dt = 0.01
-
-    def __init__(self, model: LinearizableModel, x0: np.ndarray) -> None:
-        self.model, self.x0 = model, x0
-        self.reset()
-
-    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray:
-        del seed, speed_mps  # starts at x0, the reference's first state
-        self._z = self.model.lift(self.x0)
-        return self.x0.copy()
-
-    def step(self, u: np.ndarray) -> np.ndarray:
-        self._z = self.model.step(self._z, self.model.normalizer_.inputs(u))
-        return self.model.normalizer_.states_inverse(self._z)
-
-    @property
-    def pose(self) -> np.ndarray:
-        return np.zeros(3)
-
-    @property
-    def fingerprint(self) -> dict[str, Any]:
-        return {"plant": "dnn"}
 
 
 @pytest.mark.parametrize("horizons", [{"Np": 10, "Nc": 7}, {"Np": 30, "Nc": 20}])

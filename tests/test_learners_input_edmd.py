@@ -16,8 +16,8 @@ from learners.bilinear import BilinearEDMD
 from learners.edmd import EDMD
 from learners.input_edmd import InputEDMD
 from tests.helpers import learner_config, synthetic_episodes
-from tests.test_dnn_mpc import OwnModelPlant
 from tests.test_learners_edmd import NORMALIZER
+from tests.toy_models import OwnModelPlant
 
 DT = 0.01
 

@@ -13,7 +13,13 @@ from typing import Any, ClassVar
 import numpy as np
 
 from controllers.lifted_linear import LiftedLinearModel
-from harness.core.contracts import STATE_NAMES, BilinearModel, Dynamics, LiftedModel
+from harness.core.contracts import (
+    STATE_NAMES,
+    BilinearModel,
+    Dynamics,
+    LiftedModel,
+    LinearizableModel,
+)
 from harness.core.episode import MinMaxNormalizer
 
 
@@ -152,3 +158,31 @@ class ModelPlant:
 
     def _state(self) -> np.ndarray:
         return self.model.normalizer_.states_inverse(self.model.C_ @ self._z)
+
+
+class OwnModelPlant:
+    """A plant that is a linearisable model itself (a DNN, an input EDMD, a toy car), its lifted
+    state the normalized state: the controller meets its own model."""
+
+    dt = 0.01
+
+    def __init__(self, model: LinearizableModel, x0: np.ndarray) -> None:
+        self.model, self.x0 = model, x0
+        self.reset()
+
+    def reset(self, seed: int | None = None, speed_mps: float = 0.0) -> np.ndarray:
+        del seed, speed_mps  # starts at x0, the reference's first state
+        self._z = self.model.lift(self.x0)
+        return self.x0.copy()
+
+    def step(self, u: np.ndarray) -> np.ndarray:
+        self._z = self.model.step(self._z, self.model.normalizer_.inputs(u))
+        return self.model.normalizer_.states_inverse(self._z)
+
+    @property
+    def pose(self) -> np.ndarray:
+        return np.zeros(3)
+
+    @property
+    def fingerprint(self) -> dict[str, Any]:
+        return {"plant": "own_model", "model": type(self.model).__name__}
