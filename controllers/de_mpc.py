@@ -321,6 +321,12 @@ class DEMPC:
             settings["Q"] = config.path_weights()
             self.path_qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **settings)
         self._path_settings = settings
+        # The path's yaw-rate reference, normalized as the model's states, and the steps ahead.
+        self._yaw_rate_scale = (
+            float(self.normalizer.state_min[2]),
+            float(self.normalizer.state_span[2]),
+        )
+        self._steps_ahead = np.arange(self.Np + 1, dtype=float)
         # A lifted-linear model's path QPs, one per speed band met (see _path_theta), the most
         # recently used last.
         self._band_qps: OrderedDict[float, TimeVaryingQP] = OrderedDict()
@@ -509,16 +515,17 @@ class DEMPC:
         frenet = self._path.locate(pose, self._path_hint)
         self._path_hint = frenet.index
         speed = float(x[0])
-        ahead = frenet.station_m + speed * self.dt * np.arange(self.Np + 1)
+        ahead = frenet.station_m + (speed * self.dt) * self._steps_ahead
         curvature = self._path.curvature_at(ahead)
         # The kinematics' v̄ by band: Θ depends on nothing else for a lifted-linear model, so
         # its path QP (Hessian, dual) is rebuilt only when the speed leaves its band.
         banded = self._speed_band(speed)
         where = (frenet.lateral_error_m, frenet.heading_error_rad, banded, curvature[:-1])
-        states_ref = self.normalizer.states_inverse(y_ref.reshape(self.Np, STATES))
-        states_ref[:, 2] = speed * curvature[1:]
-        errors_ref = np.zeros((self.Np, ERRORS))
-        return np.hstack([self.normalizer.states(states_ref), errors_ref]).ravel(), where
+        references = np.zeros((self.Np, OUTPUTS))  # errors' references: 0
+        references[:, :STATES] = y_ref.reshape(self.Np, STATES)
+        low, span = self._yaw_rate_scale
+        references[:, 2] = (speed * curvature[1:] - low) / span
+        return references.ravel(), where
 
     def prepare(self) -> None:
         """The real-time iteration's preparation of the next step, before its measurement:

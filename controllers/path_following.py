@@ -84,20 +84,31 @@ class FrenetOutputs:
         speed_mps: float,
         curvature_per_m: np.ndarray,
     ) -> np.ndarray:
-        """free (5 Np,) of :meth:`extend`: what the measurement moves."""
+        """free (5 Np,) of :meth:`extend`: what the measurement moves. Written into one array
+        (no stacking): it runs in the feedback phase, every step."""
         dt, v = self.dt, float(speed_mps)
         Np = len(curvature_per_m)
         free = free.reshape(Np, STATES)
         span, low = self.span, self.low
-        # Step j's physical states, j = 0..Np-1: j = 0 measured (no input effect), then predicted.
-        free_states = _before(span * np.asarray(y0, dtype=float) + low, span * free + low)
+        out = np.empty((Np, OUTPUTS))
+        out[:, :STATES] = free
+        # Step j's physical vy and r, j = 0..Np-1: j = 0 measured (no input effect), then
+        # predicted; the two error columns hold them until they are summed.
+        lateral, heading = out[:, STATES], out[:, STATES + 1]
+        lateral[0], heading[0] = span[1:] * np.asarray(y0, dtype=float)[1:] + low[1:]
+        lateral[1:] = span[1] * free[:-1, 1] + low[1]
+        heading[1:] = span[2] * free[:-1, 2] + low[2]
         # e_ψ,k = e_ψ,0 + dt Σ_{j<k} (r_j − v̄ κ_j)
-        heading_free = heading_error_rad + dt * np.cumsum(free_states[:, 2] - v * curvature_per_m)
-        # e_y,k = e_y,0 + dt Σ_{j<k} (vy_j + v̄ e_ψ,j)
-        lateral_free = lateral_error_m + dt * np.cumsum(
-            free_states[:, 1] + v * _before(np.asarray(heading_error_rad), heading_free)
-        )
-        return np.column_stack([free, lateral_free, heading_free]).ravel()
+        heading -= v * curvature_per_m
+        heading_before = heading_error_rad + dt * np.cumsum(heading)
+        # e_y,k = e_y,0 + dt Σ_{j<k} (vy_j + v̄ e_ψ,j), e_ψ,0 the measured one
+        lateral[0] += v * heading_error_rad
+        lateral[1:] += v * heading_before[:-1]
+        np.cumsum(lateral, out=lateral)
+        lateral *= dt
+        lateral += lateral_error_m
+        heading[:] = heading_before
+        return out.ravel()
 
 
 def _before(first: np.ndarray, later: np.ndarray) -> np.ndarray:

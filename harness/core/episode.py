@@ -166,6 +166,11 @@ class MinMaxNormalizer:
             np.array([c.gain_negative for c in self.channels], dtype=float),
         )
 
+    @property
+    def state_span(self) -> np.ndarray:
+        """Each state's max - min (1 where it never varied): normalized = (x - min) / span."""
+        return self._state_span
+
     def states(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x) - self.state_min) / self._state_span
 

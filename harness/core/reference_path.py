@@ -10,6 +10,7 @@ nearest sample, refined on its segment, is the projection.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,25 +58,26 @@ class ReferencePath:
         return cls(station, x, y, heading, curvature)
 
     def locate(self, pose: np.ndarray, hint: int | None = None) -> FrenetState:
-        """The pose (X, Y, yaw) relative to the path; ``hint``: the last call's ``index``."""
-        X, Y, yaw = (float(value) for value in pose)
+        """The pose (X, Y, yaw) relative to the path; ``hint``: the last call's ``index``.
+        Scalars in Python floats: a controller calls this every step, and NumPy's scalar
+        functions cost a microsecond each."""
+        X, Y, yaw = np.asarray(pose, dtype=float).tolist()
         if hint is None:
             lo, hi = 0, len(self.station_m)
         else:
-            s = self.station_m[hint]
-            lo = int(np.searchsorted(self.station_m, s - _SEARCH_BACK_M))
-            hi = int(np.searchsorted(self.station_m, s + _SEARCH_AHEAD_M)) + 1
+            s = float(self.station_m[hint])
+            lo, hi = np.searchsorted(self.station_m, (s - _SEARCH_BACK_M, s + _SEARCH_AHEAD_M))
+            hi += 1
         distance = (self.x_m[lo:hi] - X) ** 2 + (self.y_m[lo:hi] - Y) ** 2
-        k = lo + int(np.argmin(distance))
-        heading = self.heading_rad[k]
-        cos, sin = np.cos(heading), np.sin(heading)
-        along = cos * (X - self.x_m[k]) + sin * (Y - self.y_m[k])
-        lateral = -sin * (X - self.x_m[k]) + cos * (Y - self.y_m[k])
+        k = int(lo + distance.argmin())
+        heading = float(self.heading_rad[k])
+        cos, sin = math.cos(heading), math.sin(heading)
+        dx, dy = X - float(self.x_m[k]), Y - float(self.y_m[k])
         error = yaw - heading
         return FrenetState(
-            station_m=float(self.station_m[k] + along),
-            lateral_error_m=float(lateral),
-            heading_error_rad=float(np.arctan2(np.sin(error), np.cos(error))),
+            station_m=float(self.station_m[k]) + (cos * dx + sin * dy),
+            lateral_error_m=-sin * dx + cos * dy,
+            heading_error_rad=math.atan2(math.sin(error), math.cos(error)),
             index=k,
         )
 
