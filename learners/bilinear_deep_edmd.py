@@ -166,12 +166,13 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
     ) -> None:
         deep_edmd.setdefault("prediction_output", "linear")
         super().__init__(**deep_edmd)
-        require(
-            not self.refit_koopman_lstsq,
-            "learner.refit_koopman_lstsq",
-            "false (bilinear_refit: lstsq refits the bilinear operator)",
-            True,
-        )
+        for key in ("refit_koopman_lstsq", "refit_inputs_lstsq"):
+            require(
+                not getattr(self, key),
+                f"learner.{key}",
+                "false (bilinear_refit: lstsq refits the bilinear operator)",
+                True,
+            )
         boolean("learner.bilinear_training", bilinear_training)
         self.bilinear_training = bilinear_training
         self.bilinear_refit = choice("learner.bilinear_refit", bilinear_refit, REFITS)

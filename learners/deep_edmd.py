@@ -36,7 +36,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 import torch
 
-from harness.core.checks import boolean, choice, integer, non_negative
+from harness.core.checks import boolean, choice, integer, non_negative, require
 from harness.core.episode import Episode
 from learners.base import Dim, KoopmanLearner, Shape
 from learners.edmd import linear_rollout
@@ -400,6 +400,10 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         prediction_output: ``decoder`` (paper) or ``linear`` (C_ z) for ``predict``.
         refit_koopman_lstsq: After training, replace A, B by the least-squares fit on the
             lifted training data (the paper's optional last step).
+        refit_inputs_lstsq: After training (and at every validation), replace B alone by the
+            least-squares fit of z_{k+1} - A z_k = B u_k on the lifted training data, with the
+            trained A (ours: the one-step input response DE-MPC and its offset-free estimate
+            rely on; docs/learners.md, "B by least squares"). Not with refit_koopman_lstsq.
         loss_scales: Weigh each state's squared error in L_ox, L_xx in units of its scale
             (physical units, e.g. [0.2, 0.1, 0.05]; ours). None: the paper's normalized units.
         random_layer: ``enabled``, ``std`` of the extra encoder layer redrawn every step.
@@ -418,6 +422,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         alpha: LossWeights | Mapping[str, float] | None = None,
         prediction_output: str = "decoder",
         refit_koopman_lstsq: bool = False,
+        refit_inputs_lstsq: bool = False,
         loss_scales: Sequence[float] | None = None,
         random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
         training: TrainingConfig | Mapping[str, Any] | None = None,
@@ -438,6 +443,14 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             "learner.prediction_output", prediction_output, ("decoder", "linear")
         )
         self.refit_koopman_lstsq = bool(refit_koopman_lstsq)
+        boolean("learner.refit_inputs_lstsq", refit_inputs_lstsq)
+        require(
+            not (refit_inputs_lstsq and self.refit_koopman_lstsq),
+            "learner.refit_inputs_lstsq",
+            "false when learner.refit_koopman_lstsq is true (that refit fits B with A)",
+            refit_inputs_lstsq,
+        )
+        self.refit_inputs_lstsq = refit_inputs_lstsq
         self.loss_scales = check_loss_scales(loss_scales)
         self._random_layer_width = self.lifted_dim
         self._encoder_np: NumpyMLP | None = None  # the trained encoder for lift (_for_control)
@@ -450,6 +463,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             "alpha": asdict(self.alpha),
             "prediction_output": self.prediction_output,
             "refit_koopman_lstsq": self.refit_koopman_lstsq,
+            "refit_inputs_lstsq": self.refit_inputs_lstsq,
             "loss_scales": None if self.loss_scales is None else list(self.loss_scales),
             "random_layer": asdict(self.random_layer),
             "training": asdict(self.training),
@@ -478,7 +492,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         return torch.cat([x_n, phi], -1) if self.lifted_includes_state else phi
 
     def _sync_for_rollout(self, train: Sequence[Episode]) -> None:
-        """A_, B_ (C_) as the fitted model will have them; with the refit, by least squares on
+        """A_, B_ (C_) as the fitted model will have them; with a refit, by least squares on
         the lifted training data, leaving the trained A, B in the parameters untouched."""
         self._encoder_np = None  # the encoder is training: lift through the network
         self._read_matrices(train)
@@ -486,6 +500,8 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
             size = theta.shape[1]
             self.A_, self.B_ = theta[:size].T.copy(), theta[size:].T.copy()
+        elif self.refit_inputs_lstsq:
+            self.B_ = self._inputs_lstsq(train, self.A_)
 
     def _rollout_scorer(
         self, train: Sequence[Episode], validation: Sequence[Episode]
@@ -533,6 +549,8 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         self._encoder_np = None
         if self.refit_koopman_lstsq:
             self.refit_koopman(train)
+        elif self.refit_inputs_lstsq:
+            self.refit_inputs(train)
         self._read_matrices(train)
         self._for_control()
 
@@ -555,11 +573,40 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         size = theta.shape[1]
         views["koopman.A.weight"].copy_(torch.from_numpy(theta[:size].T))
         views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
-        self.refit_koopman_lstsq = True
+        self.refit_koopman_lstsq, self.refit_inputs_lstsq = True, False  # B is refitted too
         self.prediction_output = "linear"
-        self._hyperparameters.update(refit_koopman_lstsq=True, prediction_output="linear")
+        self._hyperparameters.update(
+            refit_koopman_lstsq=True, refit_inputs_lstsq=False, prediction_output="linear"
+        )
         self._read_matrices(train)
         return self
+
+    def refit_inputs(self, train: Sequence[Episode]) -> DeepEDMD:
+        """Replace B alone by the least-squares fit of z_{k+1} - A z_k = B u_k on the lifted
+        training data, with the trained A, encoder and decoder (``refit_inputs_lstsq``; also
+        usable on a trained or loaded model). Training fits A and B to whole windows, where an
+        input's effect over a step or ten is a small part of the loss: a seed may learn a B whose
+        throttle first slows the car. The one-step fit gives B the data's short-term response,
+        which DE-MPC plans with and its offset-free estimate assumes."""
+        if self.refit_koopman_lstsq:
+            raise ValueError("this Deep EDMD's A and B are refitted already (refit_koopman_lstsq)")
+        views = self.params_.views()
+        A = views["koopman.A.weight"].double().numpy()
+        views["koopman.B.weight"].copy_(torch.from_numpy(self._inputs_lstsq(train, A)))
+        self.refit_inputs_lstsq = True
+        self._hyperparameters.update(refit_inputs_lstsq=True)
+        self._read_matrices(train)
+        return self
+
+    def _inputs_lstsq(self, train: Sequence[Episode], A: np.ndarray) -> np.ndarray:
+        """B (N, m) minimizing sum ||z_{k+1} - A z_k - B u_k||^2 over the lifted training data."""
+        size = A.shape[0]
+
+        def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+            for regressors, targets in self._lifted_pairs(train):
+                yield regressors[:, size:], targets - regressors[:, :size] @ A.T
+
+        return ridge_lstsq(pairs(), _LSTSQ_RIDGE).T.copy()
 
     def _read_matrices(self, train: Sequence[Episode]) -> None:
         views = self.params_.views()

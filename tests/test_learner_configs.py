@@ -130,3 +130,5 @@ def test_the_paper_presets_keep_the_papers_table_where_our_defaults_depart_from_
     deep_paper = learner_config("deep_edmd_paper")
     assert list(deep_paper.encoder_hidden) == [32, 64] and deep_paper.lifted_dim == 10
     assert list(deep_paper.decoder_hidden) == [128, 64, 32] and deep_paper.alpha.readout == 0.0
+    assert deep_paper.refit_inputs_lstsq is False and deep_paper.refit_koopman_lstsq is False
+    assert learner_config("deep_edmd").refit_inputs_lstsq is True  # ours: B by least squares

@@ -409,6 +409,38 @@ def test_the_least_squares_refit_solves_the_normal_equations_of_the_lifted_data(
     )
 
 
+def test_the_input_refit_solves_the_normal_equations_of_b_with_the_trained_a(
+    data: dict,
+) -> None:
+    """V^T (Z_{k+1} - Z_k A^T - V B^T) = 0 for the lifted training data and the model's own A
+    (up to the float32 storage of B); the trained B is far from it, and A is not touched."""
+    args = (data["train"], data["validation"], data["normalizer"])
+    trained = small(DeepEDMD).fit(*args)
+    A_trained, B_trained = trained.A_.copy(), trained.B_.copy()
+
+    def normal_equations(model) -> float:
+        """||V^T R|| / ||V^T (Z_{k+1} - Z_k A^T)||, R the one-step residual."""
+        z = [model.lift(e.states) for e in data["train"]]
+        v = np.vstack([data["normalizer"].inputs(e.inputs)[:-1] for e in data["train"]])
+        target = np.vstack([zk[1:] - zk[:-1] @ model.A_.T for zk in z])
+        residual = target - v @ model.B_.T
+        return float(np.linalg.norm(v.T @ residual) / np.linalg.norm(v.T @ target))
+
+    assert normal_equations(trained) > 1e-3
+    refit = trained.refit_inputs(data["train"])
+    assert normal_equations(refit) < 1e-5
+    np.testing.assert_array_equal(refit.A_, A_trained)
+    assert not np.allclose(refit.B_, B_trained)
+    assert refit.hyperparameters["refit_inputs_lstsq"] is True
+    # training with the refit ends in the same kind of model: B solves its normal equations
+    assert normal_equations(small(DeepEDMD, refit_inputs_lstsq=True).fit(*args)) < 1e-5
+
+
+def test_one_refit_at_a_time() -> None:
+    with pytest.raises(ValueError, match=r"learner\.refit_inputs_lstsq must be false"):
+        DeepEDMD(refit_koopman_lstsq=True, refit_inputs_lstsq=True)
+
+
 def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_cores(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
