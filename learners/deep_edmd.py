@@ -548,10 +548,11 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
     def _after_training(self, train: Sequence[Episode]) -> None:
         self._encoder_np = None
         if self.refit_koopman_lstsq:
-            self.refit_koopman(train)
+            self.refit_koopman(train)  # each refit reads the matrices it wrote
         elif self.refit_inputs_lstsq:
             self.refit_inputs(train)
-        self._read_matrices(train)
+        else:
+            self._read_matrices(train)
         self._for_control()
 
     def _for_control(self) -> None:
