@@ -416,7 +416,7 @@ def test_the_input_refit_solves_the_normal_equations_of_b_with_the_trained_a(
     (up to the float32 storage of B); the trained B is far from it, and A is not touched."""
     args = (data["train"], data["validation"], data["normalizer"])
     trained = small(DeepEDMD).fit(*args)
-    A_trained, B_trained = trained.A_.copy(), trained.B_.copy()
+    a_trained, b_trained = trained.A_.copy(), trained.B_.copy()
 
     def normal_equations(model) -> float:
         """||V^T R|| / ||V^T (Z_{k+1} - Z_k A^T)||, R the one-step residual."""
@@ -429,8 +429,8 @@ def test_the_input_refit_solves_the_normal_equations_of_b_with_the_trained_a(
     assert normal_equations(trained) > 1e-3
     refit = trained.refit_inputs(data["train"])
     assert normal_equations(refit) < 1e-5
-    np.testing.assert_array_equal(refit.A_, A_trained)
-    assert not np.allclose(refit.B_, B_trained)
+    np.testing.assert_array_equal(refit.A_, a_trained)
+    assert not np.allclose(refit.B_, b_trained)
     assert refit.hyperparameters["refit_inputs_lstsq"] is True
     # training with the refit ends in the same kind of model: B solves its normal equations
     assert normal_equations(small(DeepEDMD, refit_inputs_lstsq=True).fit(*args)) < 1e-5
