@@ -447,7 +447,8 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         require(
             not (refit_inputs_lstsq and self.refit_koopman_lstsq),
             "learner.refit_inputs_lstsq",
-            "false when learner.refit_koopman_lstsq is true (that refit fits B with A)",
+            "false when learner.refit_koopman_lstsq is true (that refit fits B with A; "
+            "learner=deep_edmd_lstsq sets both)",
             refit_inputs_lstsq,
         )
         self.refit_inputs_lstsq = refit_inputs_lstsq
