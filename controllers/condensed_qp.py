@@ -305,6 +305,12 @@ class CondensedQP:
                 self._daqp.update(A=self._daqp_rows)
                 self._daqp_rows_new = False
 
+    @property
+    def has_model(self) -> bool:
+        """Whether a model's matrices are set (a time-varying QP has none before its first
+        preparation succeeds): :meth:`predict` needs them."""
+        return self._has_model()
+
     def _has_model(self) -> bool:
         """Whether P is the model's (a time-varying QP's placeholder P, before its first Θ, is
         not worth DAQP's workspace: every Θ replaces its rows)."""

@@ -17,6 +17,7 @@ from controllers.linearization import BilinearLinearization
 from harness.core.episode import MinMaxNormalizer
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
+from harness.references import DoubleLaneChange
 from tests.qp_truth import PIQP_KKT_TOL, assert_optimal, solution_kkt
 from tests.toy_models import (
     ModelPlant,
@@ -338,3 +339,35 @@ def test_a_solve_whose_prediction_is_not_finite_fails_and_optimises_nothing() ->
     solution = qp.solve(z, np.full(2, 0.5), np.zeros(3 * SETTINGS["Np"]))
     assert not solution.ok and solution.status == PREDICTION_NOT_FINITE
     assert solution.path == "failed" and np.all(solution.dv == 0)
+
+
+@pytest.mark.parametrize("reference_kind", ["states", "path"])
+def test_a_model_that_diverges_at_the_first_step_falls_back_without_a_prediction(
+    monkeypatch, reference_kind: str
+) -> None:
+    """A run whose very first preparation fails has no model in its QP yet: the step holds the
+    start input and reports its horizon as NaN rows (as a step without a call), and the next
+    step, with a finite model, plans as usual (a DNN of the paper's recipe did this at rest)."""
+    model = toy_bilinear_model()
+    reference = feasible_reference(model, steps=40)
+    controller = DEMPC(model, DEMPCConfig(Np=10, Nc=7, reference=reference_kind))
+    linearization = controller.linearization
+    assert linearization is not None
+    exact = linearization.linearize
+
+    def not_finite(z: np.ndarray, v: np.ndarray):
+        A, B, d = exact(z, v)
+        return np.full_like(A, np.nan), B, d
+
+    monkeypatch.setattr(linearization, "linearize", not_finite)
+    path = DoubleLaneChange().course().path() if reference_kind == "path" else None
+    controller.reset(reference, path=path)
+    pose = np.zeros(3) if path is not None else None
+    x = reference[0]
+    u, info = controller.act(x, 0.0, pose=pose)
+    assert info.fallback and info.solve_path == "failed"
+    np.testing.assert_allclose(u, np.zeros(2), atol=1e-12)  # the run starts from u = 0
+    assert info.predicted_states.shape == (10, 3) and np.isnan(info.predicted_states).all()
+    monkeypatch.setattr(linearization, "linearize", exact)
+    _, after = controller.act(x, 0.01, pose=pose)
+    assert not after.fallback and np.isfinite(after.predicted_states).all()
