@@ -288,7 +288,7 @@ class CondensedQP:
         """Forget the previous active set (a new run starts cold)."""
         self._guess[:] = False
         self._daqp = None
-        if self.active_set and self.qp_solver == "daqp" and self._has_model():
+        if self.active_set and self.qp_solver == "daqp" and self.has_model():
             self._daqp = self._daqp_cold()
 
     def prepare_solvers(self) -> None:
@@ -305,15 +305,10 @@ class CondensedQP:
                 self._daqp.update(A=self._daqp_rows)
                 self._daqp_rows_new = False
 
-    @property
     def has_model(self) -> bool:
-        """Whether a model's matrices are set (a time-varying QP has none before its first
-        preparation succeeds): :meth:`predict` needs them."""
-        return self._has_model()
-
-    def _has_model(self) -> bool:
-        """Whether P is the model's (a time-varying QP's placeholder P, before its first Θ, is
-        not worth DAQP's workspace: every Θ replaces its rows)."""
+        """Whether a model's matrices are set: :meth:`predict` needs them, and a time-varying
+        QP's placeholder P (none before its first preparation succeeds) is not worth DAQP's
+        workspace, since every Θ replaces its rows."""
         return True
 
     def _daqp_cold(self) -> daqp.Model | None:
@@ -727,7 +722,7 @@ class TimeVaryingQP(CondensedQP):
         self._free_maps = free_response_maps(A, B, d, self.C) if N <= SMALL_LIFT else None
         return theta
 
-    def _has_model(self) -> bool:
+    def has_model(self) -> bool:
         return self._p_factor is not None  # set with the first Θ (set_model, ...)
 
     def set_disturbance(self, w: np.ndarray | None) -> None:

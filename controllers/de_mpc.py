@@ -452,7 +452,7 @@ class DEMPC:
             self._z_expected = z if self.delay_steps else self._model_step(z, plan[0]) + w
         self._last = _Last(z, plan[0], w, x, pose, t)
         planned_inputs = self.normalizer.inputs_inverse(plan)  # elementwise: row 0 is u's bits
-        if qp.has_model:
+        if qp.has_model():
             predicted = qp.predict(z, v_prev, dv)[:, :STATES]
             predicted = predicted + shift.reshape(self.Np, -1)[:, :STATES]
         else:  # the run's first preparation failed: no model to predict with yet (NaN rows)
