@@ -36,7 +36,7 @@ import numpy as np
 
 from controllers.blas import single_threaded
 from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
-from controllers.linearization import BilinearLinearization
+from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.core.budget import check_memory
 from harness.core.checks import boolean, choice, finite, in_range, integer, positive, require
@@ -167,6 +167,12 @@ class DEMPCConfig:
     # controller waited at every stop of a paper-scale test drive (docs/control.md, "The
     # standstill trap").
     release_brake: bool = True
+    # Linearised models: the input Jacobian B_k as a secant over this fraction of each input's
+    # range (normalized units), centred on the point and kept inside the input limits; 0 takes
+    # the model's tangent (ours). A learned step's tangent in the pedal can be flat near the
+    # throttle-brake kink, and a QP linearised there holds the pedal while its reference brakes
+    # (docs/control.md, "The pedal's flat tangent").
+    input_secant_span: float = 0.0
 
     def __post_init__(self) -> None:
         key = "controller."
@@ -192,6 +198,7 @@ class DEMPCConfig:
         choice(key + "qp_solver", self.qp_solver, QP_SOLVERS)
         choice(key + "reference", self.reference, REFERENCES)
         in_range(key + "offset_free_gain", self.offset_free_gain, 0.0, 1.0, open_low=True)
+        in_range(key + "input_secant_span", self.input_secant_span, 0.0, 1.0)
         for name in (
             "rho",
             "steer_wheel_increment_deg",
@@ -303,6 +310,13 @@ class DEMPC:
             self._linear_step = (A, B)
         else:
             self.qp = TimeVaryingQP(C, INPUTS, **settings)
+            if config.input_secant_span > 0:
+                self.linearization = SecantInputs(
+                    self.linearization,
+                    config.input_secant_span,
+                    settings["v_min"],
+                    settings["v_max"],
+                )
         self.C = C
         self._pedal_zero = float(origin[PEDAL])  # the released pedal, normalized
         vx_min = float(self.normalizer.state_min[0])

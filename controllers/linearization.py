@@ -18,7 +18,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from harness.core.contracts import BilinearModel, Dynamics
+from harness.core.contracts import BilinearModel, Dynamics, LinearizableModel
 from harness.core.episode import MinMaxNormalizer
 
 
@@ -60,3 +60,58 @@ class BilinearLinearization:
         B = self.B + hz
         d = -(hz @ v[:, :, None])[:, :, 0]
         return A, B, d
+
+
+class SecantInputs:
+    """A linearisable model whose input Jacobian is a secant over ``span`` of each input's
+    normalized range (its A and the rest of its step are the model's own).
+
+    Why: a learned step's tangent in the pedal can be flat, or of the wrong sign, near the
+    throttle-brake kink (a fitted smooth map overshoots where the true one bends), and a QP
+    linearised there sees no use in moving the pedal and holds it: seed 1 of input EDMD at paper
+    scale coasted at 0.05 throttle for four seconds while its reference braked from 19 to 10 m/s
+    (docs/control.md, "The pedal's flat tangent"). The secant, (step(v + h) − step(v − h)) / 2h
+    with h = span / 2 kept inside [v_min, v_max], sees past such a wiggle to the slope that
+    braking or throttle has over a usable pedal move."""
+
+    dynamics: ClassVar[Dynamics] = "nonlinear"
+
+    def __init__(
+        self, model: LinearizableModel, span: float, v_min: np.ndarray, v_max: np.ndarray
+    ) -> None:
+        if not (np.isfinite(span) and span > 0):
+            raise ValueError(f"the secant's span must be > 0 (got {span!r})")
+        self.model = model
+        self.half = 0.5 * float(span)
+        self.v_min = np.asarray(v_min, dtype=float)
+        self.v_max = np.asarray(v_max, dtype=float)
+        self.C_ = model.C_
+        self.normalizer_: MinMaxNormalizer = model.normalizer_
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.model.lift(x), dtype=float)
+
+    def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.asarray(self.model.step(z, v), dtype=float)
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        A, _, _ = self.model.linearize(z, v)
+        points, m = v.shape
+        low = np.maximum(v - self.half, self.v_min)  # (K, m): each input's interval, in the box
+        high = np.minimum(v + self.half, self.v_max)
+        eye = np.eye(m, dtype=bool)
+        # Row (k, j, side): input j of point k moved to its interval's end, the others as v_k.
+        moved = np.stack(
+            [
+                np.where(eye, low[:, None, :], v[:, None, :]),
+                np.where(eye, high[:, None, :], v[:, None, :]),
+            ],
+            axis=2,
+        )  # (K, m, 2, m)
+        repeated = np.broadcast_to(z[:, None, None, :], (points, m, 2, z.shape[1]))
+        ends = self.step(repeated.reshape(-1, z.shape[1]), moved.reshape(-1, m))
+        ends = ends.reshape(points, m, 2, -1)
+        width = np.maximum(high - low, np.finfo(float).tiny)  # (K, m)
+        B = np.transpose((ends[:, :, 1] - ends[:, :, 0]) / width[:, :, None], (0, 2, 1))
+        d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
+        return A, np.ascontiguousarray(B), d
