@@ -29,6 +29,7 @@ import logging
 import math
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -39,7 +40,16 @@ from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVa
 from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from harness.core.budget import check_memory
-from harness.core.checks import boolean, choice, finite, in_range, integer, positive, require
+from harness.core.checks import (
+    boolean,
+    choice,
+    finite,
+    in_range,
+    integer,
+    is_number,
+    positive,
+    require,
+)
 from harness.core.contracts import (
     COMPUTE_DELAYS,
     BilinearModel,
@@ -167,12 +177,13 @@ class DEMPCConfig:
     # controller waited at every stop of a paper-scale test drive (docs/control.md, "The
     # standstill trap").
     release_brake: bool = True
-    # Linearised models: the input Jacobian B_k as a secant over this fraction of each input's
-    # range (normalized units), centred on the point and kept inside the input limits; 0 takes
-    # the model's tangent (ours). A learned step's tangent in the pedal can be flat near the
-    # throttle-brake kink, and a QP linearised there holds the pedal while its reference brakes
-    # (docs/control.md, "The pedal's flat tangent").
-    input_secant_span: float = 0.0
+    # Linearised models: each input's column of B_k as a secant over this fraction of its range
+    # (normalized units), centred on the point and kept inside the input limits; one number for
+    # every input or one per input (steering wheel, pedal); 0 takes the model's tangent (ours).
+    # A learned step's tangent in the pedal can be flat near the throttle-brake kink, and a QP
+    # linearised there holds the pedal while its reference brakes (docs/control.md, "The
+    # pedal's flat tangent"). OmegaConf has no float | list.
+    input_secant_span: Any = 0.0
 
     def __post_init__(self) -> None:
         key = "controller."
@@ -198,7 +209,7 @@ class DEMPCConfig:
         choice(key + "qp_solver", self.qp_solver, QP_SOLVERS)
         choice(key + "reference", self.reference, REFERENCES)
         in_range(key + "offset_free_gain", self.offset_free_gain, 0.0, 1.0, open_low=True)
-        in_range(key + "input_secant_span", self.input_secant_span, 0.0, 1.0)
+        self.secant_spans()
         for name in (
             "rho",
             "steer_wheel_increment_deg",
@@ -220,6 +231,21 @@ class DEMPCConfig:
     def weights(self) -> tuple[np.ndarray, np.ndarray]:
         """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
         return _weight("Q", self.Q, STATES), _weight("R", self.R, INPUTS)
+
+    def secant_spans(self) -> np.ndarray:
+        """input_secant_span as one span per input, each a fraction of its range in [0, 1]."""
+        value = self.input_secant_span
+        values = [value] * INPUTS if is_number(value) else value
+        numbers = isinstance(values, Sequence) and not isinstance(values, str | bytes)
+        numbers = numbers and len(values) == INPUTS and all(is_number(s) for s in values)
+        spans = np.array(values if numbers else [np.nan] * INPUTS, dtype=float)
+        if not (np.all(np.isfinite(spans)) and np.all((spans >= 0) & (spans <= 1))):
+            raise ValueError(
+                "controller.input_secant_span must be a number in [0, 1] or one per input "
+                f"({INPUTS}: steering wheel, pedal), a fraction of its range (got "
+                f"{self.input_secant_span!r})"
+            )
+        return np.array(spans)
 
     def path_weights(self) -> np.ndarray:
         """Q_path as a (5, 5) diagonal: non-negative, and the path's errors weighed at all."""
@@ -310,12 +336,10 @@ class DEMPC:
             self._linear_step = (A, B)
         else:
             self.qp = TimeVaryingQP(C, INPUTS, **settings)
-            if config.input_secant_span > 0:
+            spans = config.secant_spans()
+            if np.any(spans > 0):
                 self.linearization = SecantInputs(
-                    self.linearization,
-                    config.input_secant_span,
-                    settings["v_min"],
-                    settings["v_max"],
+                    self.linearization, spans, settings["v_min"], settings["v_max"]
                 )
         self.C = C
         self._pedal_zero = float(origin[PEDAL])  # the released pedal, normalized

@@ -63,8 +63,9 @@ class BilinearLinearization:
 
 
 class SecantInputs:
-    """A linearisable model whose input Jacobian is a secant over ``span`` of each input's
-    normalized range (its A and the rest of its step are the model's own).
+    """A linearisable model whose input Jacobian is, column by column, a secant over ``spans``
+    of each input's normalized range (a span of 0 keeps that input's tangent); its A and its
+    step are the model's own.
 
     Why: a learned step's tangent in the pedal can be flat, or of the wrong sign, near the
     throttle-brake kink (a fitted smooth map overshoots where the true one bends), and a QP
@@ -77,12 +78,14 @@ class SecantInputs:
     dynamics: ClassVar[Dynamics] = "nonlinear"
 
     def __init__(
-        self, model: LinearizableModel, span: float, v_min: np.ndarray, v_max: np.ndarray
+        self, model: LinearizableModel, spans: np.ndarray, v_min: np.ndarray, v_max: np.ndarray
     ) -> None:
-        if not (np.isfinite(span) and span > 0):
-            raise ValueError(f"the secant's span must be > 0 (got {span!r})")
+        spans = np.asarray(spans, dtype=float)
+        if spans.ndim != 1 or not (np.all(np.isfinite(spans)) and np.all(spans >= 0)):
+            raise ValueError(f"the secant's spans must be one number >= 0 per input (got {spans})")
         self.model = model
-        self.half = 0.5 * float(span)
+        self.half = 0.5 * spans
+        self.columns = np.flatnonzero(spans > 0)  # the inputs taken as secants
         self.v_min = np.asarray(v_min, dtype=float)
         self.v_max = np.asarray(v_max, dtype=float)
         self.C_ = model.C_
@@ -95,23 +98,23 @@ class SecantInputs:
         return np.asarray(self.model.step(z, v), dtype=float)
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        A, _, _ = self.model.linearize(z, v)
-        points, m = v.shape
-        low = np.maximum(v - self.half, self.v_min)  # (K, m): each input's interval, in the box
-        high = np.minimum(v + self.half, self.v_max)
-        eye = np.eye(m, dtype=bool)
-        # Row (k, j, side): input j of point k moved to its interval's end, the others as v_k.
-        moved = np.stack(
-            [
-                np.where(eye, low[:, None, :], v[:, None, :]),
-                np.where(eye, high[:, None, :], v[:, None, :]),
-            ],
-            axis=2,
-        )  # (K, m, 2, m)
-        repeated = np.broadcast_to(z[:, None, None, :], (points, m, 2, z.shape[1]))
-        ends = self.step(repeated.reshape(-1, z.shape[1]), moved.reshape(-1, m))
-        ends = ends.reshape(points, m, 2, -1)
-        width = np.maximum(high - low, np.finfo(float).tiny)  # (K, m)
-        B = np.transpose((ends[:, :, 1] - ends[:, :, 0]) / width[:, :, None], (0, 2, 1))
+        A, B, _ = self.model.linearize(z, v)
+        B = np.array(B, dtype=float)  # the tangent's columns stay where the span is 0
+        points, size = z.shape
+        columns = self.columns
+        low = np.maximum(v - self.half, self.v_min)[:, columns]  # (K, c): in the input box
+        high = np.minimum(v + self.half, self.v_max)[:, columns]
+        # Row (k, i, end): point k with input columns[i] at its interval's low or high end.
+        moved = np.repeat(v[:, None, None, :], len(columns), axis=1).repeat(2, axis=2)
+        picks = np.arange(len(columns))
+        moved[:, picks, 0, columns] = low
+        moved[:, picks, 1, columns] = high
+        repeated = np.broadcast_to(z[:, None, None, :], (points, len(columns), 2, size))
+        ends = self.step(repeated.reshape(-1, size), moved.reshape(-1, v.shape[1]))
+        ends = ends.reshape(points, len(columns), 2, size)
+        width = np.maximum(high - low, np.finfo(float).tiny)  # (K, c)
+        B[:, :, columns] = np.transpose(
+            (ends[:, :, 1] - ends[:, :, 0]) / width[..., None], (0, 2, 1)
+        )
         d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
         return A, np.ascontiguousarray(B), d

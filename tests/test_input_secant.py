@@ -32,7 +32,8 @@ SPEED_SPAN = 40.0  # vx from 0 to 40 m/s, normalized to [0, 1]
 @dataclass
 class CubicPedalCar:
     """vx⁺ = vx + dt · 8 f³ (f = 2 v_pedal − 1, the pedal's feature): monotone in the pedal, its
-    tangent zero at the released pedal; vy and the yaw rate decay, steering turns the car."""
+    tangent zero at the released pedal; vy and the yaw rate decay, steering turns the car by
+    0.02 sin(v_wheel − 0.5)."""
 
     dynamics: ClassVar[Dynamics] = "nonlinear"
     normalizer_: MinMaxNormalizer = field(
@@ -53,7 +54,7 @@ class CubicPedalCar:
         out = np.array(z, dtype=float, copy=True)
         out[..., 0] = z[..., 0] + DT * GAIN * feature**3 / SPEED_SPAN
         out[..., 1] = 0.5 + 0.95 * (z[..., 1] - 0.5)
-        out[..., 2] = 0.5 + 0.95 * (z[..., 2] - 0.5) + 0.02 * (v[..., 0] - 0.5)
+        out[..., 2] = 0.5 + 0.95 * (z[..., 2] - 0.5) + 0.02 * np.sin(v[..., 0] - 0.5)
         return out
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -63,13 +64,15 @@ class CubicPedalCar:
         A[:, 1, 1] = A[:, 2, 2] = 0.95
         B = np.zeros((len(z), 3, 2))
         B[:, 0, 1] = DT * GAIN * 3.0 * feature**2 * 2.0 / SPEED_SPAN  # the tangent
-        B[:, 2, 0] = 0.02
+        B[:, 2, 0] = 0.02 * np.cos(v[:, 0] - 0.5)
         d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
         return A, B, d
 
 
-def secant(model: Any, span: float = 0.2) -> SecantInputs:
-    return SecantInputs(model, span, np.zeros(2), np.ones(2))
+def secant(model: Any, span: float = 0.2, wheel_span: float | None = None) -> SecantInputs:
+    """Secants over ``span`` of each input's range (``wheel_span`` of the wheel's, if given)."""
+    spans = np.array([span if wheel_span is None else wheel_span, span])
+    return SecantInputs(model, spans, np.zeros(2), np.ones(2))
 
 
 def test_the_toy_car_has_a_flat_tangent_where_the_pedal_is_released() -> None:
@@ -94,7 +97,8 @@ def test_the_secant_of_a_cubic_pedal_is_its_closed_form() -> None:
     expected = DT * GAIN * ((f + 2 * h) ** 3 - (f - 2 * h) ** 3) / (2 * h) / SPEED_SPAN
     np.testing.assert_allclose(B[:, 0, 1], expected, rtol=1e-9)
     assert B[0, 0, 1] > 0.0  # the released pedal brakes and drives after all
-    np.testing.assert_allclose(B[:, 2, 0], 0.02, rtol=1e-9)  # steering acts linearly: its slope
+    wheel = v[:, 0] - 0.5
+    np.testing.assert_allclose(B[:, 2, 0], 0.02 * np.cos(wheel) * np.sin(h) / h, rtol=1e-9)
     np.testing.assert_array_equal(A, own_a)
     np.testing.assert_allclose(
         np.einsum("kab,kb->ka", A, z) + np.einsum("kaj,kj->ka", B, v) + d,
@@ -102,6 +106,17 @@ def test_the_secant_of_a_cubic_pedal_is_its_closed_form() -> None:
         rtol=1e-12,
         atol=1e-15,
     )  # exact at the point it linearises at
+
+
+def test_a_span_of_zero_keeps_that_inputs_tangent() -> None:
+    model = CubicPedalCar()
+    z = model.lift(np.array([[10.0, 0.0, 0.0]]))
+    v = np.array([[0.8, 0.5]])
+    _, tangent, _ = model.linearize(z, v)
+    _, mixed, _ = secant(model, span=0.2, wheel_span=0.0).linearize(z, v)
+    _, both, _ = secant(model, span=0.2).linearize(z, v)
+    assert mixed[0, 2, 0] == tangent[0, 2, 0] != both[0, 2, 0]  # the wheel: its own tangent
+    assert mixed[0, 0, 1] == both[0, 0, 1] > tangent[0, 0, 1] == 0.0  # the pedal: the secant
 
 
 def test_the_secant_stays_inside_the_input_limits() -> None:
@@ -149,7 +164,14 @@ def test_a_flat_tangent_holds_the_pedal_and_the_secant_brakes(horizons: dict) ->
     assert braked_error < 0.3 and braked_pedal < -1.0  # braked (MPa) with its reference
 
 
-@pytest.mark.parametrize("span", [-0.1, 1.5, float("nan"), "0.2"])
+@pytest.mark.parametrize("span", [-0.1, 1.5, float("nan"), "0.2", [0.1, 0.2, 0.3], [0.1, -0.2]])
 def test_the_secant_span_is_a_fraction_of_the_range(span: Any) -> None:
     with pytest.raises(ValueError, match=r"controller\.input_secant_span"):
         DEMPCConfig(input_secant_span=span)
+
+
+def test_a_span_per_input_is_accepted() -> None:
+    np.testing.assert_array_equal(
+        DEMPCConfig(input_secant_span=[0.0, 0.2]).secant_spans(), [0, 0.2]
+    )
+    np.testing.assert_array_equal(DEMPCConfig(input_secant_span=0.1).secant_spans(), [0.1, 0.1])
