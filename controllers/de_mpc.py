@@ -244,8 +244,8 @@ class DEMPCConfig:
         spans = np.array(values if numbers else [np.nan] * INPUTS, dtype=float)
         if not (np.all(np.isfinite(spans)) and np.all((spans >= 0) & (spans <= 1))):
             raise ValueError(
-                "controller.input_secant_span must be a number in [0, 1] or one per input "
-                f"({INPUTS}: steering wheel, pedal), a fraction of its range (got "
+                "controller.input_secant_span must be a fraction of each input's range in "
+                "[0, 1]: one number, or one per input [steering wheel, pedal] (got "
                 f"{self.input_secant_span!r})"
             )
         return np.array(spans)
