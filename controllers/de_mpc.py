@@ -248,7 +248,7 @@ class DEMPCConfig:
                 "[0, 1]: one number, or one per input [steering wheel, pedal] (got "
                 f"{self.input_secant_span!r})"
             )
-        return np.array(spans)
+        return spans
 
     def path_weights(self) -> np.ndarray:
         """Q_path as a (5, 5) diagonal: non-negative, and the path's errors weighed at all."""

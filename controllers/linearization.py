@@ -98,8 +98,8 @@ class SecantInputs:
         return np.asarray(self.model.step(z, v), dtype=float)
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        A, B, _ = self.model.linearize(z, v)
-        B = np.array(B, dtype=float)  # the tangent's columns stay where the span is 0
+        A, tangent, tangent_d = self.model.linearize(z, v)
+        B = np.array(tangent, dtype=float)  # the tangent's columns stay where the span is 0
         points, size = z.shape
         columns = self.columns
         low = np.maximum(v - self.half, self.v_min)[:, columns]  # (K, c): in the input box
@@ -116,5 +116,6 @@ class SecantInputs:
         B[:, :, columns] = np.transpose(
             (ends[:, :, 1] - ends[:, :, 0]) / width[..., None], (0, 2, 1)
         )
-        d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
+        # Exact at the point as the model's own: step(z, v) = A z + B v + d for either B.
+        d = tangent_d + np.einsum("kaj,kj->ka", tangent - B, v)
         return A, np.ascontiguousarray(B), d
