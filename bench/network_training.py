@@ -107,6 +107,17 @@ def run(overrides: Sequence[str], arm: str, baselines: bool) -> list[dict[str, A
     return rows
 
 
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    """The rows of a JSON-lines file that ``append_rows`` wrote (arms run in separate processes)."""
+    return [json.loads(line) for line in path.read_text().splitlines() if line]
+
+
+def append_rows(path: Path, rows: Sequence[dict[str, Any]]) -> None:
+    with path.open("a") as handle:
+        for row in rows:
+            handle.write(json.dumps(row) + "\n")
+
+
 def _markdown(rows: Sequence[dict[str, Any]]) -> str:
     episodes = list(rows[0]["rmse"])
     head = "| arm | " + " | ".join(episodes) + " | worst ratio to input EDMD | train s | stop |"
@@ -131,15 +142,12 @@ def main() -> None:
     parser.add_argument("--table", type=Path, help="print the table of a JSON-lines file, only")
     args = parser.parse_args()
     if args.table:
-        rows = [json.loads(line) for line in args.table.read_text().splitlines() if line]
-        print(_markdown(rows))
+        print(_markdown(read_rows(args.table)))
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     rows = run(args.overrides, args.arm or " ".join(args.overrides), args.baselines)
     if args.jsonl:
-        with args.jsonl.open("a") as handle:
-            for row in rows:
-                handle.write(json.dumps(row) + "\n")
+        append_rows(args.jsonl, rows)
     print(_markdown(rows))
     sys.stdout.flush()
 

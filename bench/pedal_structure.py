@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import time
 from collections.abc import Sequence
@@ -31,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.network_training import _compose, _dataset, _rmse
+from bench.network_training import _compose, _dataset, _rmse, append_rows, read_rows
 
 ARMS = ("pedal", "split")
 SPEED_BANDS_MPS = ((0.5, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, 25.0), (25.0, 35.0))
@@ -129,8 +128,7 @@ def main() -> None:
     parser.add_argument("--table", type=Path, help="print the table of a JSON-lines file, only")
     args = parser.parse_args()
     if args.table:
-        rows = [json.loads(line) for line in args.table.read_text().splitlines() if line]
-        print(_markdown(rows))
+        print(_markdown(read_rows(args.table)))
         return
     arms = [a for a in args.arms.split(",") if a]
     unknown = sorted(set(arms) - set(ARMS))
@@ -147,9 +145,7 @@ def main() -> None:
         print()
     rows = run(args.overrides, arms, args.label)
     if args.jsonl:
-        with args.jsonl.open("a") as handle:
-            for row in rows:
-                handle.write(json.dumps(row) + "\n")
+        append_rows(args.jsonl, rows)
 
 
 if __name__ == "__main__":
