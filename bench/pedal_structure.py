@@ -13,9 +13,11 @@ drive, as ``metrics.json``'s ``prediction.<episode>.rmse``). ``--slopes`` first 
 pedal does to the plant, measured on the training drives: the least-squares fit of the
 longitudinal acceleration (vx_{k+1} - vx_k) / dt on [1, vx, vy r, throttle, brake] (the pedal
 in its [-1, 1] feature) in bands of speed, the slope of each side per band. One slope for both
-sides and every speed is what a model with a constant B assumes. ``--jsonl FILE`` appends the
-rows, ``--table FILE`` prints a file's rows (arms in separate processes, two at a time on two
-cores). docs/learners.md, "Why the affine models miss vx", ran on this.
+sides and every speed is what a model with a constant B assumes. ``--baselines`` adds the bars
+every model must clear: persistence (the state held) and the identified single-track model, on
+the pedal as it is. ``--jsonl FILE`` appends the rows, ``--table FILE`` prints a file's rows
+(arms in separate processes, two at a time on two cores). docs/learners.md, "Why the affine
+models miss vx", ran on this.
 """
 
 from __future__ import annotations
@@ -30,7 +32,14 @@ from typing import Any
 
 import numpy as np
 
-from bench.network_training import _compose, _dataset, _rmse, append_rows, read_rows
+from bench.network_training import (
+    Persistence,
+    _compose,
+    _dataset,
+    _rmse,
+    append_rows,
+    read_rows,
+)
 
 ARMS = ("pedal", "split")
 SPEED_BANDS_MPS = ((0.5, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, 25.0), (25.0, 35.0))
@@ -72,7 +81,9 @@ def pedal_slopes(episodes: Sequence[Any]) -> dict[tuple[float, float], tuple[flo
     return slopes
 
 
-def run(overrides: Sequence[str], arms: Sequence[str], label: str = "") -> list[dict[str, Any]]:
+def run(
+    overrides: Sequence[str], arms: Sequence[str], label: str = "", baselines: bool = False
+) -> list[dict[str, Any]]:
     from hydra.utils import instantiate
 
     from harness.core.episode import MinMaxNormalizer
@@ -80,6 +91,16 @@ def run(overrides: Sequence[str], arms: Sequence[str], label: str = "") -> list[
     cfg = _compose(overrides)
     dataset = _dataset(cfg)
     rows = []
+    if baselines:  # the bars, on the pedal as it is: the state held, the identified physics
+        physics = _compose(
+            [o for o in overrides if o.startswith("data")] + ["learner=single_track"]
+        )
+        single_track = instantiate(physics.learner, _convert_="object")
+        single_track.fit(dataset.train, dataset.validation, dataset.normalizer)
+        for name, model in (("persistence", Persistence()), ("single_track", single_track)):
+            row = {"learner": name, "overrides": [], "label": name, "arm": "pedal"}
+            rows.append({**row, "rmse": _rmse(model, dataset.test), "seconds": 0.0})
+            print(_markdown(rows[-1:], header=len(rows) == 1), flush=True)
     for arm in arms:
         change = split_pedal if arm == "split" else (lambda e: e)
         train, validation, test = (
@@ -123,6 +144,7 @@ def main() -> None:
     parser.add_argument("overrides", nargs="*", help="Hydra overrides, as for python -m harness")
     parser.add_argument("--arms", default=",".join(ARMS), help="pedal, split or both")
     parser.add_argument("--label", default="", help="the rows' name (default: the overrides)")
+    parser.add_argument("--baselines", action="store_true", help="add persistence, single-track")
     parser.add_argument("--slopes", action="store_true", help="first print the pedal's slopes")
     parser.add_argument("--jsonl", type=Path, help="append the rows as JSON lines")
     parser.add_argument("--table", type=Path, help="print the table of a JSON-lines file, only")
@@ -143,7 +165,7 @@ def main() -> None:
             ratio = brake / throttle
             print(f"| {low:g}-{high:g} | {throttle:.2f} | {brake:.2f} | {ratio:.1f} | {n} |")
         print()
-    rows = run(args.overrides, arms, args.label)
+    rows = run(args.overrides, arms, args.label, args.baselines)
     if args.jsonl:
         append_rows(args.jsonl, rows)
 
