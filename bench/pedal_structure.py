@@ -45,12 +45,21 @@ ARMS = ("pedal", "split")
 SPEED_BANDS_MPS = ((0.5, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, 25.0), (25.0, 35.0))
 
 
+def _pedal_column(episode: Any) -> int:
+    if "pedal" not in episode.input_names:
+        raise ValueError(
+            f"episode {episode.name} has no 'pedal' input ({', '.join(episode.input_names)}): "
+            "this bench splits a signed throttle/brake pedal, as the sedan's data has"
+        )
+    return int(episode.input_names.index("pedal"))
+
+
 def split_pedal(episode: Any) -> Any:
     """The episode with its pedal column as two: throttle and brake, each >= 0 in [0, 1]."""
     from harness.core.episode import InputChannel
 
     names = episode.input_names
-    j = names.index("pedal")
+    j = _pedal_column(episode)
     feature = episode.channels[j].feature(episode.inputs[:, j])
     columns = [episode.inputs[:, i] for i in range(len(names)) if i != j]
     channels = [c for i, c in enumerate(episode.channels) if i != j]
@@ -64,7 +73,7 @@ def pedal_slopes(episodes: Sequence[Any]) -> dict[tuple[float, float], tuple[flo
     pedal's feature, each band its own least squares on [1, vx, vy r, throttle, brake]."""
     columns, targets = [], []
     for episode in episodes:
-        j = episode.input_names.index("pedal")
+        j = _pedal_column(episode)
         pedal = episode.channels[j].feature(episode.inputs[:-1, j])
         vx, vy, yaw_rate = episode.states[:-1].T
         throttle, brake = np.maximum(pedal, 0.0), np.maximum(-pedal, 0.0)
@@ -132,7 +141,7 @@ def _markdown(rows: Sequence[dict[str, Any]], header: bool = True) -> str:
         lines += ["|" + "---|" * (len(episodes) + 3)]
     for row in rows:
         cells = [" / ".join(f"{v:.3g}" for v in row["rmse"][e]) for e in episodes]
-        name = " ".join(row["overrides"]) or row["learner"]
+        name = row.get("label") or " ".join(row["overrides"]) or row["learner"]
         lines.append(
             f"| {name} | {row['arm']} | " + " | ".join(cells) + f" | {row['seconds']:.0f} |"
         )

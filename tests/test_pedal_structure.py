@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bench.pedal_structure import pedal_slopes, split_pedal
-from harness.core.episode import SEDAN_INPUTS, Episode
+from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel
 
 DT_S = 0.01
 
@@ -57,3 +57,19 @@ def test_the_slopes_are_the_planted_ones_in_each_speed_band() -> None:
         assert throttle == pytest.approx(1.5 if low < 10.0 else 0.6, rel=1e-6)
         assert brake == pytest.approx(7.5, rel=1e-6)
         assert samples > 100
+
+
+def test_data_without_a_pedal_is_refused_in_one_line() -> None:
+    episode = _pair("e", 10.0, 0.5, 1.5, 7.5)
+    logs = Episode(
+        "run_1",
+        episode.time_s,
+        episode.states,
+        episode.inputs,
+        episode.poses,
+        (InputChannel("steer"), InputChannel("throttle")),
+    )
+    with pytest.raises(ValueError, match="run_1 has no 'pedal' input \\(steer, throttle\\)"):
+        split_pedal(logs)
+    with pytest.raises(ValueError, match="no 'pedal' input"):
+        pedal_slopes([logs])
