@@ -91,14 +91,18 @@ def pedal_slopes(episodes: Sequence[Any]) -> dict[tuple[float, float], tuple[flo
 
 
 def run(
-    overrides: Sequence[str], arms: Sequence[str], label: str = "", baselines: bool = False
+    cfg: Any,
+    dataset: Any,
+    overrides: Sequence[str],
+    arms: Sequence[str],
+    label: str = "",
+    baselines: bool = False,
 ) -> list[dict[str, Any]]:
+    """Fit ``cfg.learner`` on ``dataset`` once per arm (composed from ``overrides``)."""
     from hydra.utils import instantiate
 
     from harness.core.episode import MinMaxNormalizer
 
-    cfg = _compose(overrides)
-    dataset = _dataset(cfg)
     rows = []
     if baselines:  # the bars, on the pedal as it is: the state held, the identified physics
         physics = _compose(
@@ -166,15 +170,16 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown arm {', '.join(unknown)}: choose from {', '.join(ARMS)}")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    cfg = _compose(args.overrides)
+    dataset = _dataset(cfg)  # once: the slopes and every arm read the same drives
     if args.slopes:
-        dataset = _dataset(_compose(args.overrides))
         print("| vx m/s | throttle m/s² | brake m/s² | brake / throttle | samples |")
         print("|---|---|---|---|---|")
         for (low, high), (throttle, brake, n) in pedal_slopes(dataset.train).items():
             ratio = brake / throttle
             print(f"| {low:g}-{high:g} | {throttle:.2f} | {brake:.2f} | {ratio:.1f} | {n} |")
         print()
-    rows = run(args.overrides, arms, args.label, args.baselines)
+    rows = run(cfg, dataset, args.overrides, arms, args.label, args.baselines)
     if args.jsonl:
         append_rows(args.jsonl, rows)
 
