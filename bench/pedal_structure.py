@@ -23,7 +23,6 @@ models miss vx", ran on this.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import time
 from collections.abc import Sequence
@@ -40,32 +39,10 @@ from bench.network_training import (
     append_rows,
     read_rows,
 )
+from learners.split_pedal import pedal_column, split_pedal
 
 ARMS = ("pedal", "split")
 SPEED_BANDS_MPS = ((0.5, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, 25.0), (25.0, 35.0))
-
-
-def _pedal_column(episode: Any) -> int:
-    if "pedal" not in episode.input_names:
-        raise ValueError(
-            f"episode {episode.name} has no 'pedal' input ({', '.join(episode.input_names)}): "
-            "this bench splits a signed throttle/brake pedal, as the sedan's data has"
-        )
-    return int(episode.input_names.index("pedal"))
-
-
-def split_pedal(episode: Any) -> Any:
-    """The episode with its pedal column as two: throttle and brake, each >= 0 in [0, 1]."""
-    from harness.core.episode import InputChannel
-
-    names = episode.input_names
-    j = _pedal_column(episode)
-    feature = episode.channels[j].feature(episode.inputs[:, j])
-    columns = [episode.inputs[:, i] for i in range(len(names)) if i != j]
-    channels = [c for i, c in enumerate(episode.channels) if i != j]
-    inputs = np.stack([*columns, np.maximum(feature, 0.0), np.maximum(-feature, 0.0)], axis=1)
-    channels += [InputChannel("throttle"), InputChannel("brake")]
-    return dataclasses.replace(episode, inputs=inputs, channels=tuple(channels))
 
 
 def pedal_slopes(episodes: Sequence[Any]) -> dict[tuple[float, float], tuple[float, float, int]]:
@@ -73,7 +50,7 @@ def pedal_slopes(episodes: Sequence[Any]) -> dict[tuple[float, float], tuple[flo
     pedal's feature, each band its own least squares on [1, vx, vy r, throttle, brake]."""
     columns, targets = [], []
     for episode in episodes:
-        j = _pedal_column(episode)
+        j = pedal_column(episode.input_names, "pedal", f"episode {episode.name}")
         pedal = episode.channels[j].feature(episode.inputs[:-1, j])
         vx, vy, yaw_rate = episode.states[:-1].T
         throttle, brake = np.maximum(pedal, 0.0), np.maximum(-pedal, 0.0)

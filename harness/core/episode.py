@@ -171,6 +171,11 @@ class MinMaxNormalizer:
         """Each state's max - min (1 where it never varied): normalized = (x - min) / span."""
         return self._state_span
 
+    @property
+    def input_span(self) -> np.ndarray:
+        """Each input feature's max - min (1 where it never varied)."""
+        return self._input_span
+
     def states(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x) - self.state_min) / self._state_span
 

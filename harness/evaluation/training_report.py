@@ -21,6 +21,7 @@ from harness.core.files import write_json_atomic
 from harness.output import save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
+from learners.split_pedal import SplitPedal
 from learners.trained import TrainedLearner
 from learners.training import History
 
@@ -37,14 +38,16 @@ def fit(
     output_dir: Path,
 ) -> Learner:
     """Fit ``learner`` (resuming from ``output_dir``); leave its loss curves in the run."""
-    if isinstance(learner, TrainedLearner):
-        learner.checkpoint_dir = output_dir
+    # A learner fitted on the split pedal trains its inner learner: that one has the curves.
+    trained = learner.inner if isinstance(learner, SplitPedal) else learner
+    if isinstance(trained, TrainedLearner):
+        trained.checkpoint_dir = output_dir
     learner = learner.fit(train, validation, normalizer)
-    if isinstance(learner, TrainedLearner) and learner.history_.step:
-        history = learner.history_
+    if isinstance(trained, TrainedLearner) and trained.history_.step:
+        history = trained.history_
         write_json_atomic(output_dir / "training_history.json", history.to_dict())
-        record_loss_curves(recorder, learner.name, history)
-        plot_loss_curves(history, output_dir / f"{learner.name}_loss.png", title=learner.name)
+        record_loss_curves(recorder, trained.name, history)
+        plot_loss_curves(history, output_dir / f"{trained.name}_loss.png", title=trained.name)
     return learner
 
 
