@@ -364,6 +364,8 @@ def _identity(hyperparameters: Mapping[str, Any]) -> dict[str, Any]:
     values = dict(hyperparameters)
     if isinstance(values.get("training"), Mapping):
         values["training"] = {k: v for k, v in values["training"].items() if k not in RUN_SETTINGS}
+    if isinstance(values.get("inner"), Mapping):  # a wrapped learner's (learners.split_pedal)
+        values["inner"] = _identity(values["inner"])
     return values
 
 

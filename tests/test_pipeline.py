@@ -12,6 +12,7 @@ import pytest
 
 from harness.core.episode import Episode
 from harness.output import load_arrays
+from learners import load as load_learner
 from tests.helpers import run_app
 
 TINY = [
@@ -202,6 +203,31 @@ def test_deep_edmd_runs_the_whole_pipeline_on_a_tiny_budget(tmp_path: Path) -> N
     tracking = metrics["tracking"]
     assert tracking["horizon"] == {"Np": 60, "Nc": 50}  # controller=de_mpc_long reached the MPC
     assert all(np.isfinite(v) for v in tracking["rmse"].values())
+
+
+def test_deep_edmd_on_the_split_pedal_trains_its_inner_model_and_is_tracked_linearised(
+    tmp_path: Path,
+) -> None:
+    run_dir = tmp_path / "split"
+    metrics = run_main(
+        tmp_path,
+        run_dir,
+        "learner=deep_edmd_split",
+        "data.driver.longitudinal_weights=[0,0,1]",  # brake after the launch (a brake never
+        "data.driver.segment_duration_s=[0.5,1.0]",  # used is refused: nothing to learn)
+        "learner.inner.training.max_steps=20",
+        "learner.inner.training.eval_every_steps=10",
+        "learner.inner.horizon=10",
+    )
+    history = json.loads((run_dir / "training_history.json").read_text())
+    assert history["step"] and max(history["step"]) <= 20  # the inner learner's curves
+    assert (run_dir / "deep_edmd_loss.png").exists()
+    assert set(metrics["spectrum"]["matrices"]) == {"A"}  # the inner model's state matrix
+    tracking = metrics["tracking"]
+    assert "skipped" not in tracking and tracking["solver_failures"] == 0
+    assert all(np.isfinite(v) for v in tracking["rmse"].values())
+    reloaded = load_learner(run_dir / "model_deep_edmd_split.pt")
+    assert reloaded.normalizer_.input_names == ("steer_wheel_deg", "pedal")
 
 
 def test_the_dnn_is_tracked_through_its_linearisation(tmp_path: Path) -> None:

@@ -127,3 +127,15 @@ def test_data_without_the_pedal_named_is_refused_in_one_line() -> None:
         )
     with pytest.raises(ValueError, match="split the pedal once"):
         SplitPedal(SplitPedal(linear_edmd()))
+
+
+def test_a_model_file_is_the_configured_learner_whatever_its_inner_training_budget() -> None:
+    from learners import DeepEDMD
+    from learners.base import check_same_learner
+
+    def split(**training: float) -> SplitPedal:
+        return SplitPedal(DeepEDMD(training={"max_steps": 100, **training}))
+
+    check_same_learner(split(max_steps=50), split(), "m.pt", "deep_edmd_split")
+    with pytest.raises(ValueError, match=r"learner\.inner\.training\.lr=0\.5"):
+        check_same_learner(split(lr=0.5), split(), "m.pt", "deep_edmd_split")
