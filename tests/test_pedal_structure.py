@@ -73,3 +73,15 @@ def test_data_without_a_pedal_is_refused_in_one_line() -> None:
         split_pedal(logs)
     with pytest.raises(ValueError, match="no 'pedal' input"):
         pedal_slopes([logs])
+
+
+def test_the_plants_pedal_effects_have_their_sign_from_the_first_step_and_grow() -> None:
+    """bench.pedal_effects' reference row: throttle speeds the car up, the brake slows it, from
+    the first 10 ms on, and a held pedal's effect grows with time."""
+    from bench.pedal_effects import plant_effect
+
+    throttle = plant_effect(22.0, 0.1, 30)
+    brake = plant_effect(22.0, -3.0, 30)
+    assert (throttle > 0).all() and (brake < 0).all()
+    assert (np.diff(throttle) > 0).all() and (np.diff(brake) < 0).all()
+    assert abs(brake[0]) > 3 * throttle[0]  # 3 MPa brake outweighs 0.1 throttle
