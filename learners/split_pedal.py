@@ -29,7 +29,7 @@ import torch
 
 from harness.core.contracts import Dynamics, LinearizableModel
 from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
-from learners.base import Learner, Shape, check_rollout_args
+from learners.base import INPUT_DIM, STATE_DIM, Learner, Shape, check_rollout_args
 
 __all__ = ["SplitPedal", "pedal_column", "split_inputs", "split_normalizer", "split_pedal"]
 
@@ -148,7 +148,7 @@ class SplitPedal(Learner):
         split = split_inputs(inputs, self.normalizer_.channels, self._column)
         return self.inner.predict(x0, split, **options)
 
-    def check_size(self, episode_frames: int, n: int = 3, m: int = 2) -> None:
+    def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
         self.inner.check_size(episode_frames, n, m + 1)
 
     @property
