@@ -157,6 +157,13 @@ class Learner(contracts.Learner, ABC):
         return False
 
     @property
+    def core(self) -> Learner:
+        """The learner that trains and holds the state matrices: itself, or the one a wrapper
+        fits (:class:`learners.split_pedal.SplitPedal`); a run reports its loss curves and
+        spectrum."""
+        return self
+
+    @property
     def hyperparameters(self) -> dict[str, Any]:
         """The constructor keywords this learner was built with (what its config holds)."""
         return dict(self._hyperparameters)

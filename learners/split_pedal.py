@@ -152,6 +152,10 @@ class SplitPedal(Learner):
         self.inner.check_size(episode_frames, n, m + 1)
 
     @property
+    def core(self) -> Learner:
+        return self.inner
+
+    @property
     def redraws_random_layer(self) -> bool:
         return self.inner.redraws_random_layer
 

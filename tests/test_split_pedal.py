@@ -84,6 +84,7 @@ def test_its_step_is_the_inner_models_on_throttle_and_brake_and_its_file_round_t
     assert isinstance(loaded, SplitPedal) and isinstance(loaded.inner, EDMD)
     np.testing.assert_allclose(loaded.step(z, v), model.step(z, v), atol=1e-12)
     assert loaded.hyperparameters == model.hyperparameters
+    assert loaded.core is loaded.inner and loaded.inner.core is loaded.inner  # curves, spectrum
 
 
 def test_its_linearisation_has_each_sides_slope_and_their_mean_at_the_released_pedal(

@@ -21,7 +21,6 @@ from harness.core.files import write_json_atomic
 from harness.output import save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
-from learners.split_pedal import SplitPedal
 from learners.trained import TrainedLearner
 from learners.training import History
 
@@ -38,8 +37,7 @@ def fit(
     output_dir: Path,
 ) -> Learner:
     """Fit ``learner`` (resuming from ``output_dir``); leave its loss curves in the run."""
-    # A learner fitted on the split pedal trains its inner learner: that one has the curves.
-    trained = learner.inner if isinstance(learner, SplitPedal) else learner
+    trained = learner.core  # a wrapper's inner learner trains and has the curves
     if isinstance(trained, TrainedLearner):
         trained.checkpoint_dir = output_dir
     learner = learner.fit(train, validation, normalizer)

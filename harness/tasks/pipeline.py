@@ -61,7 +61,6 @@ from harness.tasks import provenance
 from learners.base import Learner, check_inputs, check_same_learner
 from learners.base import load as load_learner
 from learners.persistence import Persistence
-from learners.split_pedal import SplitPedal
 
 log = logging.getLogger(__name__)
 
@@ -416,10 +415,9 @@ class Pipeline:
         self, learner: Learner, dt: float, recorder: Recorder, output_dir: Path
     ) -> dict[str, Any]:
         """``spectrum``: the eigenvalues of a Koopman model's state matrices, unstable modes
-        named (harness/evaluation/spectrum.py), and ``spectrum.png``. A model fitted on the
-        split pedal has its inner model's state matrices (the split changes only the inputs)."""
-        if isinstance(learner, SplitPedal):
-            learner = learner.inner
+        named (harness/evaluation/spectrum.py), and ``spectrum.png``. A wrapper's are its
+        core learner's (the pedal split changes only the inputs)."""
+        learner = learner.core
         if dynamics_of(learner) not in ("linear", "bilinear"):
             return {"skipped": f"{self.learner_name} is not a lifted model"}
         assert isinstance(learner, LiftedModel)
