@@ -234,14 +234,9 @@ def load(
     input_dim = payload.get("input_dim")
     if not isinstance(input_dim, int) or input_dim < 1:
         raise ValueError(f"{path} is not a learner file (input_dim {input_dim!r})")
-    saved_class = str(payload["class"])
-    module_name, _, class_name = _MOVED.get(saved_class, saved_class).rpartition(".")
-    if not module_name.startswith("learners."):
-        raise ValueError(f"{path} names class {payload['class']!r} outside the learners package")
-    cls = getattr(importlib.import_module(module_name), class_name, None)
-    if not (isinstance(cls, type) and issubclass(cls, Learner)):
-        raise ValueError(f"{path} names {payload['class']!r}, which is not a learner class")
-    learner = cls.from_hyperparameters(payload["hyperparameters"])
+    learner = learner_class(str(payload["class"]), str(path)).from_hyperparameters(
+        payload["hyperparameters"]
+    )
     normalizer, tensors = payload.get("normalizer"), payload.get("tensors")
     if not (isinstance(normalizer, Mapping) and isinstance(tensors, Mapping)):
         raise ValueError(f"{path} is not a learner file (no normalizer or tensors)")
@@ -257,6 +252,19 @@ def load(
     provenance = payload.get("provenance")
     learner.provenance_ = dict(provenance) if isinstance(provenance, Mapping) else {}
     return learner
+
+
+def learner_class(name: str, source: str) -> type[Learner]:
+    """The learner class a file names (``learners.deep_edmd.DeepEDMD``; a moved one where it
+    lives now); refused in one line naming ``source`` when it is outside this package or not a
+    learner: a file never makes the harness import or build anything else."""
+    module_name, _, class_name = _MOVED.get(name, name).rpartition(".")
+    if not module_name.startswith("learners."):
+        raise ValueError(f"{source} names class {name!r} outside the learners package")
+    cls = getattr(importlib.import_module(module_name), class_name, None)
+    if not (isinstance(cls, type) and issubclass(cls, Learner)):
+        raise ValueError(f"{source} names {name!r}, which is not a learner class")
+    return cls
 
 
 def check_inputs(learner: Learner, inputs: Sequence[str], source: str) -> None:

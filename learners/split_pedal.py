@@ -20,7 +20,6 @@ throttle's range is [max(p_min, 0), max(p_max, 0)] of the pedal's feature, the b
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from collections.abc import Mapping, Sequence
 from typing import Any, ClassVar, Self, cast
 
@@ -29,7 +28,14 @@ import torch
 
 from harness.core.contracts import Dynamics, LinearizableModel
 from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
-from learners.base import INPUT_DIM, STATE_DIM, Learner, Shape, check_rollout_args
+from learners.base import (
+    INPUT_DIM,
+    STATE_DIM,
+    Learner,
+    Shape,
+    check_rollout_args,
+    learner_class,
+)
 
 __all__ = ["SplitPedal", "pedal_column", "split_inputs", "split_normalizer", "split_pedal"]
 
@@ -49,11 +55,17 @@ def pedal_column(names: Sequence[str], pedal: str, source: str) -> int:
 def split_inputs(inputs: np.ndarray, channels: Sequence[InputChannel], column: int) -> np.ndarray:
     """Physical inputs (..., m) with column ``column`` as two, its feature's positive part
     (throttle) and negative part (brake), last: (..., m + 1), in the split channels' units."""
-    inputs = np.asarray(inputs, dtype=float)
-    feature = channels[column].feature(inputs[..., column])
-    kept = np.delete(inputs, column, axis=-1)
+    inputs = np.array(inputs, dtype=float)
+    inputs[..., column] = channels[column].feature(inputs[..., column])
+    return _split_column(inputs, column)
+
+
+def _split_column(values: np.ndarray, column: int) -> np.ndarray:
+    """``values`` (..., m) with column ``column`` as its positive and negative parts, last."""
+    signed = values[..., column]
+    kept = np.delete(values, column, axis=-1)
     return np.concatenate(
-        [kept, np.maximum(feature, 0.0)[..., None], np.maximum(-feature, 0.0)[..., None]], axis=-1
+        [kept, np.maximum(signed, 0.0)[..., None], np.maximum(-signed, 0.0)[..., None]], axis=-1
     )
 
 
@@ -112,14 +124,7 @@ class SplitPedal(Learner):
 
     @classmethod
     def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
-        module_name, _, class_name = str(hyperparameters.get("inner_class", "")).rpartition(".")
-        if not module_name.startswith("learners."):
-            raise ValueError(
-                f"split_pedal: inner class {module_name}.{class_name} is not a learner"
-            )
-        inner_class = getattr(importlib.import_module(module_name), class_name, None)
-        if not (isinstance(inner_class, type) and issubclass(inner_class, Learner)):
-            raise ValueError(f"split_pedal: {module_name}.{class_name} is not a learner class")
+        inner_class = learner_class(str(hyperparameters.get("inner_class", "")), "split_pedal")
         inner = inner_class.from_hyperparameters(hyperparameters["inner"])
         return cls(inner, str(hyperparameters.get("pedal", "pedal")))
 
@@ -195,12 +200,7 @@ class SplitPedal(Learner):
         """This model's normalized inputs (..., m) as the inner model's (..., m + 1)."""
         outer, inner = self.normalizer_, self.inner.normalizer_
         features = np.asarray(v, dtype=float) * outer.input_span + outer.input_min
-        pedal = features[..., self._column]
-        kept = np.delete(features, self._column, axis=-1)
-        split = np.concatenate(
-            [kept, np.maximum(pedal, 0.0)[..., None], np.maximum(-pedal, 0.0)[..., None]], axis=-1
-        )
-        return (split - inner.input_min) / inner.input_span
+        return (_split_column(features, self._column) - inner.input_min) / inner.input_span
 
     def _inner_step(self, z: np.ndarray, w: np.ndarray) -> np.ndarray:
         inner: Any = self.inner
