@@ -1,23 +1,30 @@
-"""Where the input enters, the one thing changed: whole-drive prediction of four model structures.
+"""Where the input enters, the one thing changed: whole-drive prediction of five model structures.
 
-``python -m bench.input_structure [--seeds 0,1,2]`` fits on ``data=default`` (collected once into
-the dataset cache, as the main job does) and prints the open-loop RMSE of both test drives:
+``python -m bench.input_structure [--seeds 0,1,2] [--pedal signed|split|both]`` fits on
+``data=default`` (collected once into the dataset cache, as the main job does) and prints the
+open-loop RMSE of both test drives:
 
 - EDMD: z+ = A z + B v on thin-plate RBFs of x (lifted-linear, the paper's);
 - bilinear EDMD: z+ = A z + B v + sum_j vbar_j H_j z, as configured (``bilinear_edmd.yaml``);
-- bilinear, re-lifted: input EDMD's fit and predictor (centres on data points, columns scaled,
-  the ridge chosen on the validation rollouts, the state lifted again each step) with bilinear
-  observables [z; v; vbar_j z] of z = [x; 1; phi(x)] — affine in the input;
+- affine, re-lifted: input EDMD's fit and predictor (centres on data points, columns scaled,
+  the ridge chosen on the validation rollouts, the state lifted again each step) with observables
+  [z; v] of z = [x; 1; phi(x)]: x+ = f(x) + G v, one constant input gain, as Deep EDMD's B;
+- bilinear, re-lifted: the same with bilinear observables [z; v; vbar_j z], affine in the input
+  with a gain that moves with the state;
 - input EDMD: the same with observables of y = [x; v] — nonlinear in the input.
 
-The last two differ only in where the input enters; their column counts are matched (160 RBFs of
-x give 3 (3 + 1 + 160) + 2 = 494 columns, 500 RBFs of (x, v) give 506). A drive is reported as
-"diverged" where the prediction leaves [-20, 20] in normalized units.
+The last three differ only in where the input enters; their column counts are matched (about 500
+a state: 500 RBFs of x give 3 + 1 + 500 + m; 160 of x give 3 (3 + 1 + 160) + 2 = 494 bilinear
+columns, 120 with the pedal split, 4 (3 + 1 + 120) + 3 = 499; 500 RBFs of (x, v) give 506).
+``--pedal split`` fits every structure on throttle and brake as two inputs
+(:class:`~learners.split_pedal.SplitPedal`), one slope for each side of the pedal. A drive is
+reported as "diverged" where the prediction leaves [-20, 20] in normalized units.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 
 import numpy as np
 
@@ -30,6 +37,26 @@ from learners import EDMD, ThinPlateRBF
 from learners.base import Learner
 from learners.bilinear import BilinearEDMD
 from learners.input_edmd import InputEDMD
+from learners.split_pedal import SplitPedal
+
+
+class AffineRelifted(InputEDMD):
+    """Input EDMD's fit and predictor on [z; v], z = [x; 1; phi(x)]: one constant input gain."""
+
+    name = "affine_relifted"
+
+    def _dictionary_points(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return x_n
+
+    def _observables(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
+        base = np.concatenate([x_n, np.ones((*x_n.shape[:-1], 1)), self.dictionary(x_n)], -1)
+        return np.concatenate([base, v], -1)
+
+    def regressor_count(self, n: int = 3, m: int = 2) -> int:
+        return n + 1 + self.dictionary.size[1] + m
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError("a prediction-only structure of this benchmark")
 
 
 class BilinearRelifted(InputEDMD):
@@ -43,7 +70,8 @@ class BilinearRelifted(InputEDMD):
     def _observables(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
         base = np.concatenate([x_n, np.ones((*x_n.shape[:-1], 1)), self.dictionary(x_n)], -1)
         vbar = v - self.normalizer_.inputs(np.zeros(v.shape[-1]))
-        return np.concatenate([base, v, *(vbar[..., j : j + 1] * base for j in range(2))], -1)
+        inputs = range(v.shape[-1])
+        return np.concatenate([base, v, *(vbar[..., j : j + 1] * base for j in inputs)], -1)
 
     def regressor_count(self, n: int = 3, m: int = 2) -> int:
         return (m + 1) * (n + 1 + self.dictionary.size[1]) + m
@@ -52,33 +80,42 @@ class BilinearRelifted(InputEDMD):
         raise NotImplementedError("a prediction-only structure of this benchmark")
 
 
-def structures(seed: int) -> dict[str, Learner]:
-    return {
+def structures(seed: int, split: bool) -> dict[str, Learner]:
+    """Each structure with about 500 columns a state; on throttle and brake where ``split``."""
+    learners: dict[str, Learner] = {
         "EDMD (linear)": EDMD(ThinPlateRBF(100), seed=seed),
         "bilinear EDMD": BilinearEDMD(ThinPlateRBF(100), seed=seed),
-        "bilinear, re-lifted": BilinearRelifted(ThinPlateRBF(160, "samples"), seed=seed),
+        "affine, re-lifted": AffineRelifted(ThinPlateRBF(500, "samples"), seed=seed),
+        "bilinear, re-lifted": BilinearRelifted(
+            ThinPlateRBF(120 if split else 160, "samples"), seed=seed
+        ),
         "input EDMD": InputEDMD(ThinPlateRBF(500, "samples"), seed=seed),
     }
+    if not split:
+        return learners
+    return {label: SplitPedal(learner) for label, learner in learners.items()}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--pedal", choices=("signed", "split", "both"), default="both")
     args = parser.parse_args()
+    pedals = ("signed", "split") if args.pedal == "both" else (args.pedal,)
     plant = Sedan()
     directory, _ = collect_counted(plant, DataConfig(), DriverKnowledge.of(plant.params))
     dataset = load(directory)
     print(describe())
     print(f"data=default ({dataset.key}); open-loop RMSE of whole test drives, vx / vy / r\n")
     names = [e.name for e in dataset.test]
-    print(f"| structure | seed | {' | '.join(names)} |")
-    print("|---|---|" + "---|" * len(names))
-    for seed in (int(s) for s in args.seeds.split(",")):
-        for label, learner in structures(seed).items():
+    print(f"| structure | pedal | seed | {' | '.join(names)} |")
+    print("|---|---|---|" + "---|" * len(names))
+    for pedal, seed in itertools.product(pedals, (int(s) for s in args.seeds.split(","))):
+        for label, learner in structures(seed, split=pedal == "split").items():
             try:
                 learner.fit(dataset.train, dataset.validation, dataset.normalizer)
             except ValueError as error:  # every ridge diverged on the validation drives
-                print(f"| {label} | {seed} | {error} |")
+                print(f"| {label} | {pedal} | {seed} | {error} |")
                 continue
             cells = []
             for episode in dataset.test:
@@ -89,7 +126,7 @@ def main() -> None:
                     continue
                 error = rmse(predicted, episode.states)
                 cells.append(" / ".join(f"{error[k]:.3f}" for k in ("vx", "vy", "yaw_rate")))
-            print(f"| {label} | {seed} | {' | '.join(cells)} |", flush=True)
+            print(f"| {label} | {pedal} | {seed} | {' | '.join(cells)} |", flush=True)
 
 
 if __name__ == "__main__":
