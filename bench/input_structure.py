@@ -1,8 +1,10 @@
 """Where the input enters, the one thing changed: whole-drive prediction of five model structures.
 
-``python -m bench.input_structure [--seeds 0,1,2] [--pedal signed|split|both]`` fits on
-``data=default`` (collected once into the dataset cache, as the main job does) and prints the
-open-loop RMSE of both test drives:
+``python -m bench.input_structure [--seeds 0,1,2] [--pedal signed|split|both] [--window-s W]
+[data=... overrides]`` fits on ``data=default`` (collected once into the dataset cache, as the main
+job does), or on the data the overrides name (a user's logs too: ``data=ddk_carsim
+data.path=<clone>``), and prints the open-loop RMSE of the test drives, whole or in windows of W
+seconds each started from the measured state, persistence (the state held) first:
 
 - EDMD: z+ = A z + B v on thin-plate RBFs of x (lifted-linear, the paper's);
 - bilinear EDMD: z+ = A z + B v + sum_j vbar_j H_j z, as configured (``bilinear_edmd.yaml``);
@@ -17,22 +19,24 @@ The last three differ only in where the input enters; their column counts are ma
 a state: 500 RBFs of x give 3 + 1 + 500 + m; 160 of x give 3 (3 + 1 + 160) + 2 = 494 bilinear
 columns, 120 with the pedal split, 4 (3 + 1 + 120) + 3 = 499; 500 RBFs of (x, v) give 506).
 ``--pedal split`` fits every structure on throttle and brake as two inputs
-(:class:`~learners.split_pedal.SplitPedal`), one slope for each side of the pedal. A drive is
-reported as "diverged" where the prediction leaves [-20, 20] in normalized units.
+(:class:`~learners.split_pedal.SplitPedal`), one slope for each side of the pedal; data without
+a signed ``pedal`` input (the DDK runs have throttle and brake already) take ``--pedal signed``,
+their inputs as recorded. A drive is reported as "diverged" where the prediction leaves
+[-20, 20] in normalized units.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+from typing import Any
 
 import numpy as np
 
 from bench.machine import describe
-from harness.data.driver import DriverKnowledge
-from harness.data.store import DataConfig, collect_counted, load
-from harness.evaluation.prediction import open_loop, rmse
-from harness.plant import Sedan
+from bench.network_training import Persistence, _compose, _dataset
+from harness.core.episode import Episode
+from harness.evaluation.prediction import open_loop, rmse, windowed
 from learners import EDMD, ThinPlateRBF
 from learners.base import Learner
 from learners.bilinear import BilinearEDMD
@@ -96,36 +100,48 @@ def structures(seed: int, split: bool) -> dict[str, Learner]:
     return {label: SplitPedal(learner) for label, learner in learners.items()}
 
 
+def _cell(learner: Any, episode: Episode, window_steps: int | None, normalizer: Any) -> str:
+    """vx / vy / r RMSE of ``episode`` predicted whole or in windows; "diverged" past 20."""
+    rows: np.ndarray | None = None  # whole drives: every row but the given first
+    if window_steps is None:
+        predicted = open_loop(learner, episode)
+    else:
+        predicted, rows = windowed(learner, episode, window_steps)
+    bound = np.abs(normalizer.states(predicted)).max()
+    if not np.isfinite(bound) or bound > 20:
+        return "diverged"
+    error = rmse(predicted, episode.states, rows)
+    return " / ".join(f"{error[k]:.3f}" for k in ("vx", "vy", "yaw_rate"))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--pedal", choices=("signed", "split", "both"), default="both")
+    parser.add_argument("--window-s", type=float, default=None, help="W s windows")
+    parser.add_argument("overrides", nargs="*", help="config overrides, e.g. data=ddk_carsim")
     args = parser.parse_args()
     pedals = ("signed", "split") if args.pedal == "both" else (args.pedal,)
-    plant = Sedan()
-    directory, _ = collect_counted(plant, DataConfig(), DriverKnowledge.of(plant.params))
-    dataset = load(directory)
+    cfg = _compose(args.overrides)
+    dataset = _dataset(cfg)
+    window_steps = None if args.window_s is None else round(args.window_s / dataset.period_s)
     print(describe())
-    print(f"data=default ({dataset.key}); open-loop RMSE of whole test drives, vx / vy / r\n")
+    what = "whole test drives" if window_steps is None else f"{args.window_s:g} s windows"
+    data = " ".join(args.overrides) or "data=default"
+    print(f"{data} ({dataset.key}); open-loop RMSE of {what}, vx / vy / r\n")
     names = [e.name for e in dataset.test]
     print(f"| structure | pedal | seed | {' | '.join(names)} |")
     print("|---|---|---|" + "---|" * len(names))
+    held = [_cell(Persistence(), e, window_steps, dataset.normalizer) for e in dataset.test]
+    print(f"| persistence | | | {' | '.join(held)} |")
     for pedal, seed in itertools.product(pedals, (int(s) for s in args.seeds.split(","))):
         for label, learner in structures(seed, split=pedal == "split").items():
             try:
                 learner.fit(dataset.train, dataset.validation, dataset.normalizer)
-            except ValueError as error:  # every ridge diverged on the validation drives
+            except ValueError as error:  # every ridge diverged; no pedal to split
                 print(f"| {label} | {pedal} | {seed} | {error} |")
                 continue
-            cells = []
-            for episode in dataset.test:
-                predicted = open_loop(learner, episode)
-                bound = np.abs(dataset.normalizer.states(predicted)).max()
-                if not np.isfinite(bound) or bound > 20:
-                    cells.append("diverged")
-                    continue
-                error = rmse(predicted, episode.states)
-                cells.append(" / ".join(f"{error[k]:.3f}" for k in ("vx", "vy", "yaw_rate")))
+            cells = [_cell(learner, e, window_steps, dataset.normalizer) for e in dataset.test]
             print(f"| {label} | {pedal} | {seed} | {' | '.join(cells)} |", flush=True)
 
 

@@ -39,13 +39,17 @@ def _compose(overrides: Sequence[str]) -> Any:
 
 
 def _dataset(cfg: Any) -> Any:
-    from harness.config import as_object
+    """``cfg.data`` as the pipeline reads it: drives collected on the sedan, or a user's logs."""
+    from harness.data.collect import data_config
     from harness.data.driver import DriverKnowledge
-    from harness.data.store import DataConfig, collect_counted, load
+    from harness.data.logs import LogsConfig, import_logs
+    from harness.data.store import collect_counted, load
     from harness.plant import Sedan
 
+    data = data_config(cfg.data)
+    if isinstance(data, LogsConfig):
+        return load(import_logs(data))
     plant = Sedan()
-    data = as_object(cfg.data, DataConfig)
     directory, _ = collect_counted(plant, data, DriverKnowledge.of(plant.params), progress=False)
     return load(directory)
 
