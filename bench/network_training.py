@@ -92,7 +92,7 @@ def run(overrides: Sequence[str], arm: str, baselines: bool) -> list[dict[str, A
     start = time.perf_counter()
     learner.fit(dataset.train, dataset.validation, dataset.normalizer)
     seconds = time.perf_counter() - start
-    history = getattr(learner, "history_", None)
+    history = getattr(learner.core, "history_", None)  # a wrapper's (split pedal) inner learner
     rows.append(
         {
             "arm": arm,
