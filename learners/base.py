@@ -254,16 +254,23 @@ def load(
     return learner
 
 
-def learner_class(name: str, source: str) -> type[Learner]:
-    """The learner class a file names (``learners.deep_edmd.DeepEDMD``; a moved one where it
-    lives now); refused in one line naming ``source`` when it is outside this package or not a
-    learner: a file never makes the harness import or build anything else."""
-    module_name, _, class_name = _MOVED.get(name, name).rpartition(".")
+def package_class(name: str, kind: type, what: str, source: str) -> Any:
+    """The class ``name`` (``learners.<module>.<Class>``) if it lives in this package and is a
+    ``kind``; refused in one line naming ``source`` and ``what`` it should be otherwise: a file
+    or config never makes the harness import or build anything else."""
+    module_name, _, class_name = name.rpartition(".")
     if not module_name.startswith("learners."):
         raise ValueError(f"{source} names class {name!r} outside the learners package")
     cls = getattr(importlib.import_module(module_name), class_name, None)
-    if not (isinstance(cls, type) and issubclass(cls, Learner)):
-        raise ValueError(f"{source} names {name!r}, which is not a learner class")
+    if not (isinstance(cls, type) and issubclass(cls, kind)):
+        raise ValueError(f"{source} names {name!r}, which is not {what}")
+    return cls
+
+
+def learner_class(name: str, source: str) -> type[Learner]:
+    """The learner class a file names (``learners.deep_edmd.DeepEDMD``; a moved one where it
+    lives now), by :func:`package_class`."""
+    cls: type[Learner] = package_class(_MOVED.get(name, name), Learner, "a learner class", source)
     return cls
 
 

@@ -17,7 +17,6 @@ training states by :meth:`Dictionary.fit` and then fixed. A new dictionary is on
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
@@ -26,7 +25,7 @@ from typing import Any, Self
 import numpy as np
 
 from harness.core.checks import choice, integer, positive
-from learners.base import Dim, Shape
+from learners.base import Dim, Shape, package_class
 
 __all__ = ["ACTIVATIONS", "Dictionary", "RandomFeatures", "ThinPlateRBF", "dictionary_from"]
 
@@ -111,14 +110,7 @@ def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
         return ThinPlateRBF()
     values = dict(value.hyperparameters if isinstance(value, Dictionary) else value)
     target = str(values.pop("_target_", ""))
-    module_name, _, class_name = target.rpartition(".")
-    if not module_name.startswith("learners."):
-        raise ValueError(
-            f"learner.dictionary._target_ must name a dictionary class (got {target!r})"
-        )
-    cls = getattr(importlib.import_module(module_name), class_name, None)
-    if not (isinstance(cls, type) and issubclass(cls, Dictionary)):
-        raise ValueError(f"learner.dictionary._target_ {target!r} is not a dictionary class")
+    cls = package_class(target, Dictionary, "a dictionary class", "learner.dictionary._target_")
     return cls(**values)
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners import EDMD, DeepEDMD, RandomFeatures, ThinPlateRBF
-from learners.dictionaries import ACTIVATIONS
+from learners.dictionaries import ACTIVATIONS, dictionary_from
 from learners.linalg import ridge_lstsq
 from tests.helpers import synthetic_episodes
 from tests.toydata import drive_episodes
@@ -125,6 +125,23 @@ def test_the_seed_draws_the_dictionary_and_nothing_else() -> None:
     np.testing.assert_array_equal(first.A_, again.A_)
     np.testing.assert_array_equal(first.dictionary.weights_, again.dictionary.weights_)
     assert not np.allclose(first.dictionary.weights_, other.dictionary.weights_)
+
+
+@pytest.mark.parametrize(
+    ("target", "message"),
+    [
+        ("os.system", "outside the learners package"),
+        ("learners.edmd.EDMD", "not a dictionary class"),
+        ("learners.dictionaries.NoSuchThing", "not a dictionary class"),
+    ],
+)
+def test_a_dictionary_is_built_only_from_a_dictionary_class_of_this_package(
+    target: str, message: str
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        dictionary_from({"_target_": target, "num_centers": 3})
+    built = dictionary_from({"_target_": "learners.dictionaries.ThinPlateRBF", "num_centers": 3})
+    assert isinstance(built, ThinPlateRBF) and built.num_centers == 3
 
 
 def test_ridge_lstsq_in_chunks_equals_lstsq_and_the_closed_form_ridge() -> None:
