@@ -44,44 +44,44 @@ from learners.input_edmd import InputEDMD
 from learners.split_pedal import SplitPedal
 
 
-class AffineRelifted(InputEDMD):
-    """Input EDMD's fit and predictor on [z; v], z = [x; 1; phi(x)]: one constant input gain."""
-
-    name = "affine_relifted"
+class _StateObservables(InputEDMD):
+    """Input EDMD's fit and predictor with observables of the state alone, z = [x; 1; phi(x)],
+    and the input outside them (the subclasses say how)."""
 
     def _dictionary_points(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
         return x_n
 
+    def _lifted(self, x_n: np.ndarray) -> np.ndarray:
+        return np.concatenate([x_n, np.ones((*x_n.shape[:-1], 1)), self.dictionary(x_n)], -1)
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError("a prediction-only structure of this benchmark")
+
+
+class AffineRelifted(_StateObservables):
+    """Observables [z; v]: one constant input gain."""
+
+    name = "affine_relifted"
+
     def _observables(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
-        base = np.concatenate([x_n, np.ones((*x_n.shape[:-1], 1)), self.dictionary(x_n)], -1)
-        return np.concatenate([base, v], -1)
+        return np.concatenate([self._lifted(x_n), v], -1)
 
     def regressor_count(self, n: int = 3, m: int = 2) -> int:
         return n + 1 + self.dictionary.size[1] + m
 
-    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError("a prediction-only structure of this benchmark")
 
-
-class BilinearRelifted(InputEDMD):
-    """Input EDMD's fit and predictor on bilinear observables of the state (affine in v)."""
+class BilinearRelifted(_StateObservables):
+    """Bilinear observables [z; v; vbar_j z]: affine in v, with a gain that moves with x."""
 
     name = "bilinear_relifted"
 
-    def _dictionary_points(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
-        return x_n
-
     def _observables(self, x_n: np.ndarray, v: np.ndarray) -> np.ndarray:
-        base = np.concatenate([x_n, np.ones((*x_n.shape[:-1], 1)), self.dictionary(x_n)], -1)
+        z = self._lifted(x_n)
         vbar = v - self.normalizer_.inputs(np.zeros(v.shape[-1]))
-        inputs = range(v.shape[-1])
-        return np.concatenate([base, v, *(vbar[..., j : j + 1] * base for j in inputs)], -1)
+        return np.concatenate([z, v, *(vbar[..., j : j + 1] * z for j in range(v.shape[-1]))], -1)
 
     def regressor_count(self, n: int = 3, m: int = 2) -> int:
         return (m + 1) * (n + 1 + self.dictionary.size[1]) + m
-
-    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError("a prediction-only structure of this benchmark")
 
 
 def structures(seed: int, split: bool) -> dict[str, Learner]:
