@@ -150,6 +150,12 @@ class Learner(contracts.Learner, ABC):
         nothing: a learner that can be configured too big overrides it."""
         del episode_frames, n, m
 
+    def check_input_names(self, names: Sequence[str]) -> None:
+        """Refuse, in one line, inputs this learner cannot be fitted on (``names``, in order, as
+        the data config gives them); called before any data is collected. The default takes any
+        inputs: a learner that needs a particular one overrides it."""
+        del names
+
     @property
     def redraws_random_layer(self) -> bool:
         """Whether ``predict(..., random_layer_seed=s)`` draws a fresh random layer each call (the

@@ -156,6 +156,10 @@ class SplitPedal(Learner):
     def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
         self.inner.check_size(episode_frames, n, m + 1)
 
+    def check_input_names(self, names: Sequence[str]) -> None:
+        """The pedal named in ``learner.pedal`` among the data's inputs, before any data."""
+        pedal_column(names, self.pedal, "the data config")
+
     @property
     def core(self) -> Learner:
         return self.inner

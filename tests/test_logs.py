@@ -280,6 +280,31 @@ def harness_on(
     )
 
 
+def test_a_learner_needing_an_input_the_logs_lack_is_refused_before_they_are_read(
+    tmp_path: Path,
+) -> None:
+    """The pedal split on logs with throttle and brake already apart: one line, no data read."""
+    from hydra.utils import instantiate
+
+    from harness.tasks.pipeline import Pipeline
+
+    with initialize_config_module(config_module="conf", version_base=None):
+        cfg = compose(
+            "config",
+            overrides=[
+                "data=ddk_carsim",
+                f"data.path={tmp_path / 'absent'}",
+                "learner=deep_edmd_split",
+            ],
+        )
+    with pytest.raises(ValueError) as info:
+        Pipeline(cfg.data, instantiate(cfg.learner, _convert_="object"), "deep_edmd_split")
+    assert str(info.value) == (
+        "the data config has no 'pedal' input (front_wheel_angle_rad, throttle, brake_mpa): the "
+        "pedal split needs a signed throttle/brake input (learner.pedal names it)"
+    )
+
+
 def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path) -> None:
     """data=ddk_carsim on a synthetic clone: fit, predict (whole runs, windows, persistence),
     spectrum; step responses and tracking skipped with the reason, at the logs' 50 ms."""

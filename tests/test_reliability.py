@@ -124,6 +124,11 @@ def build_as_the_app(*overrides: str) -> None:
             ["learner=deep_edmd", "learner.training.rollout_scales=[1.0]"],
             "learner.training.rollout_scales has 1 entries",
         ),
+        # An input the learner needs, named in the learner, not among the data's inputs.
+        (
+            ["learner=deep_edmd_split", "learner.pedal=gas"],
+            "the data config has no 'gas' input (steer_wheel_deg, pedal)",
+        ),
         # Sizes no machine has, refused before any data (point 10).
         (
             ["learner=edmd", "learner.dictionary.num_centers=1000000000"],

@@ -110,8 +110,12 @@ class Pipeline:
         self.model_path = model_path
         # Both before any data: a model file of another learner, a size beyond this machine.
         self.loaded = self._load(model_path, learner, learner_name)
-        if self.loaded is None and isinstance(self.data, DataConfig):
-            learner.check_size(self.data.max_steps)  # logs: once they are read, before the fit
+        if self.loaded is None:
+            if isinstance(self.data, DataConfig):
+                learner.check_input_names(INPUT_NAMES)
+                learner.check_size(self.data.max_steps)  # logs: once read, before the fit
+            else:
+                learner.check_input_names(list(self.data.inputs))  # the logs' column map
         integer("task.prediction_window_steps", prediction_window_steps)
         windows = (
             [prediction_window_s]
