@@ -4,7 +4,8 @@
 learner exactly as ``python -m harness`` would (``conf/``, the same overrides), fits it on
 ``data=`` (default: the embedded default, collected once into the dataset cache), and prints
 one Markdown row: the open-loop RMSE of every test drive (vx m/s / vy m/s / yaw rate rad/s,
-whole drive from its first state, as ``metrics.json``'s ``prediction.<episode>.rmse``), each
+whole drive from its first state, as ``metrics.json``'s ``prediction.<episode>.rmse``; with
+``--window-s W`` in windows of W seconds, as ``rmse_window_<W>s``), each
 state's worst ratio to input EDMD fitted on the same data in the same run, the training time
 and how training stopped. ``--baselines`` adds the rows of input EDMD and persistence (the
 state held). ``--jsonl FILE`` appends the row as JSON, so that the arms of a study can run in
@@ -54,10 +55,20 @@ def _dataset(cfg: Any) -> Any:
     return load(directory)
 
 
-def _rmse(learner: Any, episodes: Sequence[Any]) -> dict[str, list[float]]:
-    from harness.evaluation.prediction import open_loop, rmse
+def _rmse(
+    learner: Any, episodes: Sequence[Any], window_steps: int | None = None
+) -> dict[str, list[float]]:
+    """Per drive, the RMSE of each state: whole from its first state, or in windows of
+    ``window_steps`` each started from the measured state (``rmse_window_<W>s``)."""
+    from harness.evaluation.prediction import open_loop, rmse, windowed
 
-    return {e.name: [rmse(open_loop(learner, e), e.states)[s] for s in STATES] for e in episodes}
+    def scored(e: Any) -> dict[str, float]:
+        if window_steps is None:
+            return rmse(open_loop(learner, e), e.states)
+        predicted, rows = windowed(learner, e, window_steps)
+        return rmse(predicted, e.states, rows)
+
+    return {e.name: [scored(e)[s] for s in STATES] for e in episodes}
 
 
 class Persistence:
@@ -68,22 +79,29 @@ class Persistence:
         return np.repeat(x0[..., None, :], inputs.shape[-2] + 1, axis=-2)
 
 
-def run(overrides: Sequence[str], arm: str, baselines: bool) -> list[dict[str, Any]]:
+def run(
+    overrides: Sequence[str], arm: str, baselines: bool, window_s: float | None = None
+) -> list[dict[str, Any]]:
     from hydra.utils import instantiate
 
     from learners.input_edmd import InputEDMD
 
     cfg = _compose(overrides)
     dataset = _dataset(cfg)
+    window = None if window_s is None else max(1, round(window_s / dataset.period_s))
+
+    def _score(model: Any) -> dict[str, list[float]]:
+        return _rmse(model, dataset.test, window)
+
     reference = InputEDMD().fit(dataset.train, dataset.validation, dataset.normalizer)
-    ref = _rmse(reference, dataset.test)
+    ref = _score(reference)
     rows = []
     if baselines:
         rows.append({"arm": "input_edmd", "rmse": ref, "seconds": None, "stopped": ""})
         rows.append(
             {
                 "arm": "persistence",
-                "rmse": _rmse(Persistence(), dataset.test),
+                "rmse": _score(Persistence()),
                 "seconds": None,
                 "stopped": "",
             }
@@ -97,7 +115,7 @@ def run(overrides: Sequence[str], arm: str, baselines: bool) -> list[dict[str, A
         {
             "arm": arm,
             "overrides": list(overrides),
-            "rmse": _rmse(learner, dataset.test),
+            "rmse": _score(learner),
             "seconds": seconds,
             "stopped": history.stopped if history is not None else "",
             "steps": history.step[-1] if history is not None and history.step else None,
@@ -108,6 +126,7 @@ def run(overrides: Sequence[str], arm: str, baselines: bool) -> list[dict[str, A
             e: [a / b for a, b in zip(row["rmse"][e], ref[e], strict=True)] for e in ref
         }
         row["data"] = dataset.key
+        row["window_s"] = window_s
     return rows
 
 
@@ -144,12 +163,14 @@ def main() -> None:
     parser.add_argument("--baselines", action="store_true", help="add input EDMD, persistence")
     parser.add_argument("--jsonl", type=Path, help="append the rows as JSON lines")
     parser.add_argument("--table", type=Path, help="print the table of a JSON-lines file, only")
+    parser.add_argument("--window-s", type=float, help="score W s windows, not whole drives")
     args = parser.parse_args()
     if args.table:
         print(_markdown(read_rows(args.table)))
         return
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    rows = run(args.overrides, args.arm or " ".join(args.overrides), args.baselines)
+    name = args.arm or " ".join(args.overrides)
+    rows = run(args.overrides, name, args.baselines, args.window_s)
     if args.jsonl:
         append_rows(args.jsonl, rows)
     print(_markdown(rows))
