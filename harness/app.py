@@ -53,7 +53,9 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
     log.info("wrote %s (%s)", output_dir / "metrics.json", ", ".join(document))
     if "tracking" in document or "prediction" in document:
         choices = HydraConfig.get().runtime.choices
-        heading = title(choices.get("learner"), cfg.get("seed"), choices.get("plant"))
+        logs = (document.get("data") or {}).get("source") == "logs"  # the report's label
+        plant = f"logs: {choices.get('data')}" if logs else choices.get("plant")
+        heading = title(choices.get("learner"), cfg.get("seed"), plant)
         log.info("summary of %s\n%s", output_dir, summary(document, heading))
     return sections
 

@@ -330,6 +330,7 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
             prediction[episode]["rmse_window_3s"]["vx"]
             < prediction["persistence"][episode]["rmse_window_3s"]["vx"]
         )
+    assert "input_edmd, seed 0, on logs: ddk_carsim:" in result.stdout + result.stderr
     assert "needs the car that made them" in prediction["step_response"]["skipped"]
     assert "needs the car that made them" in metrics["tracking"]["skipped"]
     assert metrics["spectrum"]
