@@ -259,6 +259,27 @@ def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others()
     assert rows["sedan_wet"][-1].startswith("7 ±")  # lane change, mean of 6 and 8
 
 
+def test_a_rollout_diverged_on_another_plant_is_named_in_its_row_not_averaged() -> None:
+    def section(vx: float, diverged: bool = False) -> dict:
+        rmse = {"vx": vx, "vy": 0.1, "yaw_rate": 0.01}
+        return {"prediction": {"episode_0001": {"rmse": rmse, "diverged": diverged}}}
+
+    wet = [section(2.0), section(4.0), section(1.3e8, diverged=True)]
+    jobs = [
+        Run(
+            Path(f"input_edmd-{seed}"),
+            choices={"learner": "input_edmd", "plant": "sedan"},
+            overrides={"learner": "input_edmd", "seed": str(seed)},
+            seed=seed,
+            metrics={**section(1.0), "generalization": {"sedan_wet": wet[seed]}},
+        )
+        for seed in (0, 1, 2)
+    ]
+    rows = {row[2]: row for row in generalization_table(jobs).rows}
+    assert rows["sedan"][5] == "1 ± 0"
+    assert rows["sedan_wet"][5] == "3 ± 1.4 (1 of 3 diverged)"  # mean and std of 2 and 4
+
+
 def test_a_diverged_rollout_is_named_in_the_prediction_table_not_averaged() -> None:
     def job(seed: int, vx: float, diverged: bool) -> Run:
         rmse = {"vx": vx, "vy": 0.1, "yaw_rate": 0.01}
