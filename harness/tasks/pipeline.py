@@ -108,7 +108,8 @@ class Pipeline:
             self.controllers[name] = make
         self.other_plants = dict(other_plants or {})
         self.model_path = model_path
-        # Both before any data: a model file of another learner, a size beyond this machine.
+        # All before any data: a model file of another learner, inputs the learner cannot take,
+        # a size beyond this machine.
         self.loaded = self._load(model_path, learner, learner_name)
         if self.loaded is None:
             if isinstance(self.data, DataConfig):
