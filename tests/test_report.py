@@ -231,6 +231,17 @@ def test_loss_curves_show_every_seed_of_every_trained_network(tmp_path: Path) ->
     assert loss_figure([Run(tmp_path / "edmd", choices={"learner": "edmd"})], tmp_path) is None
 
 
+def _job(learner: str, seed: int, metrics: dict) -> Run:
+    """A job of ``learner`` and ``seed`` on the sedan whose metrics.json is ``metrics``."""
+    return Run(
+        Path(f"{learner}-{seed}"),
+        choices={"learner": learner, "plant": "sedan"},
+        overrides={"learner": learner, "seed": str(seed)},
+        seed=seed,
+        metrics=metrics,
+    )
+
+
 def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others() -> None:
     def section(value: float) -> dict:
         rmse = {"vx": value, "vy": value, "yaw_rate": value}
@@ -243,12 +254,10 @@ def test_generalization_rows_put_each_model_on_its_own_plant_and_on_the_others()
         return {"prediction": {"episode_0001": {"rmse": rmse}}, "tracking": tracking}
 
     jobs = [
-        Run(
-            Path(f"edmd-{seed}"),
-            choices={"learner": "edmd", "plant": "sedan"},
-            overrides={"learner": "edmd", "seed": str(seed)},
-            seed=seed,
-            metrics={**section(1.0 + seed), "generalization": {"sedan_wet": section(3.0 + seed)}},
+        _job(
+            "edmd",
+            seed,
+            {**section(1.0 + seed), "generalization": {"sedan_wet": section(3.0 + seed)}},
         )
         for seed in (0, 1)
     ]
@@ -266,13 +275,7 @@ def test_a_rollout_diverged_on_another_plant_is_named_in_its_row_not_averaged() 
 
     wet = [section(2.0), section(4.0), section(1.3e8, diverged=True)]
     jobs = [
-        Run(
-            Path(f"input_edmd-{seed}"),
-            choices={"learner": "input_edmd", "plant": "sedan"},
-            overrides={"learner": "input_edmd", "seed": str(seed)},
-            seed=seed,
-            metrics={**section(1.0), "generalization": {"sedan_wet": wet[seed]}},
-        )
+        _job("input_edmd", seed, {**section(1.0), "generalization": {"sedan_wet": wet[seed]}})
         for seed in (0, 1, 2)
     ]
     rows = {row[2]: row for row in generalization_table(jobs).rows}
@@ -285,13 +288,7 @@ def test_a_diverged_rollout_is_named_in_the_prediction_table_not_averaged() -> N
         rmse = {"vx": vx, "vy": 0.1, "yaw_rate": 0.01}
         held = {"rmse": {"vx": 5.0, "vy": 0.2, "yaw_rate": 0.08}}
         prediction = {"run_1": {"rmse": rmse, "diverged": diverged}, "persistence": {"run_1": held}}
-        return Run(
-            Path(f"input_edmd-{seed}"),
-            choices={"learner": "input_edmd", "plant": "sedan"},
-            overrides={"learner": "input_edmd", "seed": str(seed)},
-            seed=seed,
-            metrics={"prediction": prediction},
-        )
+        return _job("input_edmd", seed, {"prediction": prediction})
 
     table = prediction_table([job(0, 1.0, False), job(1, 3.0, False), job(2, 1e9, True)])
     learner, persistence = table.rows
