@@ -25,6 +25,9 @@ What the loop guarantees:
   window length (``curriculum``: [[p, steps], ...] phases before the learner's own p), and the
   noise drawn onto each window's initial state (``initial_state_noise``, from
   ``numpy.random.default_rng([seed, step, 1])``).
+- **Averaged weights, where asked** (``average_decay``): an exponential moving average of the
+  parameters over the batches (Polyak averaging) is what is validated, kept and returned; Adam
+  steps the raw parameters, and both are in the checkpoint.
 
 The loss curves (:class:`History`) are returned, not drawn: figures and recordings are the
 caller's (``harness/evaluation/training_report.py``).
@@ -49,7 +52,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from harness.core.checks import boolean, choice, integer, non_negative, positive, require
+from harness.core.checks import (
+    boolean,
+    choice,
+    integer,
+    is_number,
+    non_negative,
+    positive,
+    require,
+)
 from harness.core.files import write_atomic
 from learners.nets import FlatParameters
 from learners.windows import WindowData
@@ -92,7 +103,10 @@ class TrainingConfig:
     cosine`` warms up linearly over ``warmup_steps`` and decays to ``lr_final`` at ``max_steps``;
     ``grad_clip_norm`` clips the gradient's 2-norm; ``curriculum`` trains on shorter windows
     first (checkpoints are chosen, and patience counted, only after it);
-    ``initial_state_noise`` (normalized units) perturbs each window's first state.
+    ``initial_state_noise`` (normalized units) perturbs each window's first state;
+    ``average_decay`` (None: off) validates, keeps and returns the exponential moving average
+    of the weights, a ← d·a + (1 − d)·w after every batch, instead of the weights themselves:
+    the average of the last ~1/(1 − d) batches is a model the optimizer's noise moves less.
     """
 
     batch_size: int = 64
@@ -113,6 +127,7 @@ class TrainingConfig:
     grad_clip_norm: float | None = None
     curriculum: Sequence[Sequence[int]] | None = None
     initial_state_noise: float = 0.0
+    average_decay: float | None = None
 
     def __post_init__(self) -> None:
         key = "learner.training."
@@ -158,6 +173,13 @@ class TrainingConfig:
         if self.grad_clip_norm is not None:
             positive(key + "grad_clip_norm", self.grad_clip_norm)
         non_negative(key + "initial_state_noise", self.initial_state_noise)
+        if self.average_decay is not None:
+            require(
+                is_number(self.average_decay) and 0.0 < self.average_decay < 1.0,
+                key + "average_decay",
+                "a number in (0, 1), e.g. 0.99 for an average over about 100 batches, or null",
+                self.average_decay,
+            )
         if self.curriculum is not None:
             phases = []
             for phase in self.curriculum:
@@ -309,7 +331,7 @@ def train(
         "train": train_data.fingerprint(),
         "validation": validation_data.fingerprint() if validation_data is not None else None,
     }
-    state = _State.fresh()
+    state = _State.fresh(params.data.clone() if config.average_decay is not None else None)
     if checkpoint_path is not None and checkpoint_path.exists():
         try:
             state = _State.load(checkpoint_path, fingerprint, params, optimizer)
@@ -387,13 +409,17 @@ def train(
                     torch.nn.utils.clip_grad_norm_([flat], config.grad_clip_norm)
                 optimizer.param_groups[0]["lr"] = config.lr_at(state.step)
                 optimizer.step()
+                if state.average is not None:
+                    assert config.average_decay is not None  # the average exists only then
+                    state.average.lerp_(params.data, 1.0 - config.average_decay)
                 state.step += 1
                 state.batch_in_epoch = b + 1
                 state.train_sum += loss
                 state.train_count += 1
                 bar.update(1)
                 if state.step % config.eval_every_steps == 0:
-                    state.evaluate(validation_loss(), params, config)
+                    with _averaged(params, state.average):
+                        state.evaluate(validation_loss(), params, config)
                     bar.set_postfix(state.postfix(), refresh=False)
                 if state.step % config.checkpoint_every_steps == 0:
                     save_checkpoint()
@@ -408,7 +434,8 @@ def train(
                 state.batch_in_epoch = 0
         if state.train_count or not state.history.step:  # evaluate the last, off-grid steps
             final = _State.from_state(state)
-            final.evaluate(validation_loss(), params, config)
+            with _averaged(params, state.average):
+                final.evaluate(validation_loss(), params, config)
             history = final.history
             best = final.best_params
         else:
@@ -422,7 +449,24 @@ def train(
         save_checkpoint()
     if best is not None and len(val_starts):
         params.data.copy_(best)
+    elif state.average is not None:  # nothing to choose by: the average is the model
+        params.data.copy_(state.average)
     return history
+
+
+@contextlib.contextmanager
+def _averaged(params: FlatParameters, average: torch.Tensor | None) -> Iterator[None]:
+    """The averaged weights in ``params`` for an evaluation (no-op without an average); the
+    optimizer's own weights are put back after it."""
+    if average is None:
+        yield
+        return
+    live = params.data.clone()
+    params.data.copy_(average)
+    try:
+        yield
+    finally:
+        params.data.copy_(live)
 
 
 @dataclass
@@ -439,14 +483,17 @@ class _State:
     best_params: torch.Tensor | None
     history: History
     stopped: str = ""
+    average: torch.Tensor | None = None  # the weights' moving average (average_decay)
 
     @classmethod
-    def fresh(cls) -> _State:
-        return cls(0, 0, 0, 0.0, 0, math.inf, 0, None, History([], [], [], []))
+    def fresh(cls, average: torch.Tensor | None = None) -> _State:
+        """Step 0; ``average`` starts the weights' moving average (None: no average)."""
+        return cls(0, 0, 0, 0.0, 0, math.inf, 0, None, History([], [], [], []), "", average)
 
     @classmethod
     def from_state(cls, other: _State) -> _State:
-        """A copy that can be evaluated once more without touching the resumable state."""
+        """A copy that can be evaluated once more without touching the resumable state (its
+        ``average`` is shared: the copy is evaluated, never trained)."""
         h = other.history
         history = History([*h.step], [*h.epoch], [*h.train], [*h.validation], h.stopped)
         best = None if other.best_params is None else other.best_params.clone()
@@ -501,8 +548,11 @@ class _State:
             "fingerprint": _digest(fingerprint),
             "params": params.data.clone(),
             "optimizer": optimizer.state_dict(),
-            "state": {k: v for k, v in self.__dict__.items() if k not in ("best_params",)},
+            "state": {
+                k: v for k, v in self.__dict__.items() if k not in ("best_params", "average")
+            },
             "best_params": self.best_params,
+            "average": self.average,
         }
         payload["state"]["history"] = self.history.to_dict()
         buffer = io.BytesIO()
@@ -532,10 +582,15 @@ class _State:
         try:
             values = dict(payload["state"])
             values["history"] = History(**values["history"])
-            state = cls(**values, best_params=payload["best_params"])
+            state = cls(**values, best_params=payload["best_params"], average=payload["average"])
             saved = payload["params"]
-            if not isinstance(saved, torch.Tensor) or saved.shape != params.data.shape:
-                raise ValueError("its parameters have another shape")
+            for tensor in (saved, state.average):
+                if tensor is not None and (
+                    not isinstance(tensor, torch.Tensor) or tensor.shape != params.data.shape
+                ):
+                    raise ValueError("its parameters have another shape")
+            if saved is None:
+                raise ValueError("it holds no parameters")
             # Adam checks the saved groups before it changes anything.
             optimizer.load_state_dict(payload["optimizer"])
         except (KeyError, TypeError, ValueError) as error:
