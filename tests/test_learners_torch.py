@@ -724,6 +724,7 @@ RECIPE = {
     "grad_clip_norm": 0.5,
     "curriculum": [[3, 7], [5, 6]],
     "initial_state_noise": 0.01,
+    "average_decay": 0.9,
 }
 
 
@@ -737,6 +738,8 @@ def test_rollout_selection_keeps_the_checkpoint_that_predicts_the_validation_dri
     learner.fit(data["train"], data["validation"], data["normalizer"])
     scores = [v["rollout_score"] for v in learner.history_.validation]
     assert len(scores) == 3 and len(set(scores)) > 1  # every 10 of 30 steps, and it moved
+    curriculum = learner.training.curriculum_steps  # its checkpoints are no candidates
+    scores = [s for s, t in zip(scores, learner.history_.step, strict=True) if t > curriculum]
     # the score of the fitted model, recomputed directly as the prediction tables compute it
     scales = np.array(RECIPE_SCALES)
     direct = [
@@ -751,9 +754,12 @@ def test_rollout_selection_keeps_the_checkpoint_that_predicts_the_validation_dri
 RECIPE_SCALES = TrainingConfig().rollout_scales
 
 
-def _planted_training(scores: list[float], **config) -> tuple[list[float], float, Any]:
+def _planted_training(
+    scores: list[float], validated: bool = True, **config
+) -> tuple[list[float], float, Any]:
     """Train a one-weight model that Adam moves by lr every step, with the rollout score of
-    each evaluation planted: (the weight at each evaluation, the weight kept, the history)."""
+    each evaluation planted: (the weight at each evaluation, the weight kept, the history).
+    ``validated`` False: no validation data (nothing is evaluated)."""
     from learners import training as loop
     from learners.nets import FlatParameters, LayerSpec
 
@@ -779,7 +785,7 @@ def _planted_training(scores: list[float], **config) -> tuple[list[float], float
         "planted",
         Objective(),
         windows,
-        windows,
+        windows if validated else None,
         3,
         TrainingConfig(**settings),
         fingerprint={},
@@ -814,6 +820,36 @@ def test_no_checkpoint_of_the_curriculum_is_kept_and_patience_starts_after_it() 
     )
     assert history.stopped == "early_stopping" and history.step[-1] == 7
     assert weight == pytest.approx(at_evaluation[4])  # step 5, not step 1
+
+
+def test_the_averaged_weights_are_what_is_validated_kept_and_returned() -> None:
+    """With ``average_decay`` d, evaluation s sees a_s = d a_(s-1) + (1 - d) w_s from a_0 = w_0
+    = 0, where w_s are the weights of the same run without the average (Adam steps the raw
+    weights, untouched by the evaluations), and the checkpoint kept is the best average."""
+    scores = [5.0, 3.0, 4.0, 1.0, 2.0, 2.5]
+    raw, _, _ = _planted_training(scores, max_steps=6, patience=10, selection="rollout")
+    averaged, kept, _ = _planted_training(
+        scores, max_steps=6, patience=10, selection="rollout", average_decay=0.75
+    )
+    expected, a = [], 0.0
+    for w in raw:
+        a = 0.75 * a + 0.25 * w
+        expected.append(a)
+    assert averaged == pytest.approx(expected, rel=1e-6)
+    assert abs(averaged[-1]) < abs(raw[-1])  # the average lags the moving weights
+    assert kept == pytest.approx(expected[3], rel=1e-6)  # the best score, 1.0, at step 4
+
+
+def test_without_validation_the_average_is_the_model_returned() -> None:
+    """Adam moves the planted weight by exactly -lr a step (a constant gradient), so w_s = -0.1 s;
+    with nothing to validate on, the model returned is the average of w_0..w_5, not w_5."""
+    _, last, _ = _planted_training([], max_steps=5, validated=False)
+    _, returned, _ = _planted_training([], max_steps=5, validated=False, average_decay=0.5)
+    a = 0.0
+    for step in range(1, 6):
+        a = 0.5 * a + 0.5 * (-0.1 * step)
+    assert last == pytest.approx(-0.5, rel=1e-6)
+    assert returned == pytest.approx(a, rel=1e-6)
 
 
 def test_schedules_are_functions_of_the_step() -> None:
@@ -896,6 +932,8 @@ def test_the_scaled_residual_dnn_starts_as_the_state_held_and_linearizes_exactly
         ({"lr_schedule": "cosine", "max_steps": None, "max_epochs": 3}, "training.max_steps"),
         ({"grad_clip_norm": -1.0}, "training.grad_clip_norm"),
         ({"rollout_scales": "vx"}, "training.rollout_scales"),
+        ({"average_decay": 1.0}, "training.average_decay"),
+        ({"average_decay": "yes"}, "training.average_decay"),
     ],
 )
 def test_bad_training_recipe_settings_fail_in_one_line(training: dict, message: str) -> None:
