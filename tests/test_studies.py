@@ -14,9 +14,11 @@ from harness.report.headline import (
     BLOCKS,
     LANE_CHANGE,
     PAPER,
+    PAPER_MODEL_OF,
     begin,
     headline,
     logs,
+    paper_reported,
     replace_blocks,
 )
 from harness.report.studies import DOCS_DIR, RESULTS_DIR, render, studies
@@ -99,6 +101,19 @@ def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path)
     runs["path"]["passed"] = not runs["path"]["passed"]
     (job / "metrics.json").write_text(json.dumps(metrics))
     assert headline(study) != before
+
+
+def test_the_headline_sets_each_paper_model_beside_the_papers_own_numbers() -> None:
+    """Deep EDMD's cell is the mean of the paper's two test episodes, (0.75, 0.04, 0.02) and
+    (1.15, 0.08, 0.05); a model that is not the paper's has none; every preset of a paper model
+    that the study ran gets its cell."""
+    assert paper_reported("deep_edmd") == "0.95 / 0.06 / 0.035"
+    assert paper_reported("input_edmd") == "—"
+    table = headline(RESULTS_DIR / BLOCKS["headline"][0])
+    rows = {r.split(" | ")[0].lstrip("| "): r.split(" | ") for r in table.splitlines()[2:]}
+    for learner in set(PAPER_MODEL_OF) & set(rows):
+        assert rows[learner][3] == paper_reported(learner) != "—"
+    assert {"deep_edmd", "dnn", "edmd", "elm_edmd"} <= set(rows)
 
 
 def test_a_readme_without_a_generated_block_is_refused_in_one_line() -> None:
