@@ -141,14 +141,3 @@ def test_the_paper_presets_keep_the_papers_table_where_our_defaults_depart_from_
     assert list(deep_paper.decoder_hidden) == [128, 64, 32] and deep_paper.alpha.readout == 0.0
     assert deep_paper.refit_inputs_lstsq is False and deep_paper.refit_koopman_lstsq is False
     assert learner_config("deep_edmd").refit_inputs_lstsq is True  # ours: B by least squares
-
-
-def test_bilinear_deep_edmd_trains_with_our_recipe_and_refits_its_whole_operator() -> None:
-    """Bilinear Deep EDMD takes Deep EDMD's recipe (docs/learners.md: as accurate as the paper's,
-    in a fifth of the time) and its own least-squares refit of A, B and H, not B alone."""
-    bilinear, ours = learner_config("bilinear_deep_edmd"), learner_config("deep_edmd")
-    assert bilinear.training == ours.training and bilinear.horizon == ours.horizon
-    assert bilinear.loss_scales == ours.loss_scales and bilinear.alpha == ours.alpha
-    assert bilinear.refit_inputs_lstsq is False and bilinear.bilinear_refit == "lstsq"
-    split = learner_config("bilinear_deep_edmd_split")
-    assert split.inner.training == ours.training and split.inner.refit_inputs_lstsq is False
