@@ -14,14 +14,15 @@ from harness.report.headline import (
     BLOCKS,
     LANE_CHANGE,
     PAPER,
-    PAPER_MODEL_OF,
     begin,
     headline,
     logs,
+    paper_model,
     paper_reported,
     replace_blocks,
 )
 from harness.report.studies import DOCS_DIR, RESULTS_DIR, render, studies
+from tests.helpers import learner_config
 
 STUDIES = studies()
 
@@ -103,17 +104,39 @@ def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path)
     assert headline(study) != before
 
 
+@pytest.mark.parametrize(
+    ("preset", "model"),
+    [
+        ("deep_edmd", "Deep EDMD"),
+        ("deep_edmd_paper", "Deep EDMD"),
+        ("deep_edmd_random_layer", "Deep EDMD, random layer"),
+        ("dnn", "DNN"),
+        ("dnn_random_layer", "DNN, random layer"),
+        ("edmd", "EDMD"),
+        ("elm_edmd", "ELM-EDMD"),
+        ("bilinear_deep_edmd", None),
+        ("deep_edmd_split", None),
+        ("input_edmd", None),
+        ("single_track", None),
+    ],
+)
+def test_a_preset_is_the_papers_model_by_what_it_builds(preset: str, model: str | None) -> None:
+    """The learner's class (and EDMD's dictionary) names the paper's model, whatever the
+    preset's recipe; an extended or wrapped model (bilinear, the pedal split) and ours are not
+    the paper's."""
+    assert paper_model(learner_config(preset)) == model
+
+
 def test_the_headline_sets_each_paper_model_beside_the_papers_own_numbers() -> None:
     """Deep EDMD's cell is the mean of the paper's two test episodes, (0.75, 0.04, 0.02) and
-    (1.15, 0.08, 0.05); a model that is not the paper's has none; every preset of a paper model
-    that the study ran gets its cell."""
-    assert paper_reported("deep_edmd") == "0.95 / 0.06 / 0.035"
-    assert paper_reported("input_edmd") == "—"
+    (1.15, 0.08, 0.05); a model that is not the paper's has none."""
+    assert paper_reported("Deep EDMD") == "0.95 / 0.06 / 0.035"
+    assert paper_reported(None) == "—"
     table = headline(RESULTS_DIR / BLOCKS["headline"][0])
     rows = {r.split(" | ")[0].lstrip("| "): r.split(" | ") for r in table.splitlines()[2:]}
-    for learner in set(PAPER_MODEL_OF) & set(rows):
-        assert rows[learner][3] == paper_reported(learner) != "—"
-    assert {"deep_edmd", "dnn", "edmd", "elm_edmd"} <= set(rows)
+    assert rows["deep_edmd"][3] == rows["deep_edmd_paper"][3] == paper_reported("Deep EDMD")
+    assert rows["elm_edmd"][3] == paper_reported("ELM-EDMD") != rows["edmd"][3]
+    assert rows["bilinear_deep_edmd"][3] == rows["input_edmd"][3] == "—"
 
 
 def test_a_readme_without_a_generated_block_is_refused_in_one_line() -> None:

@@ -24,8 +24,10 @@ import math
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
+from omegaconf import OmegaConf
 
 from harness.core.files import write_text_atomic
 from harness.report.frame import load
@@ -39,6 +41,8 @@ __all__ = [
     "headline",
     "logs",
     "main_job",
+    "paper_model",
+    "paper_reported",
     "replace_blocks",
     "update_readme",
 ]
@@ -65,24 +69,31 @@ PAPER_REPORTED: dict[str, tuple[tuple[float, float, float], tuple[float, float, 
     "Deep EDMD, random layer": ((0.4, 0.01, 0.01), (0.35, 0.05, 0.01)),
     "DNN, random layer": ((3.86, 0.01, 0.01), (15.56, 0.06, 0.04)),
 }
-# Our presets of the paper's models (the recipe may be ours or the paper's; the model is its).
-PAPER_MODEL_OF = {
-    "edmd": "EDMD",
-    "elm_edmd": "ELM-EDMD",
-    "dnn": "DNN",
-    "dnn_paper": "DNN",
-    "deep_edmd": "Deep EDMD",
-    "deep_edmd_paper": "Deep EDMD",
-    "deep_edmd_lstsq": "Deep EDMD",
-    "deep_edmd_random_layer": "Deep EDMD, random layer",
-    "dnn_random_layer": "DNN, random layer",
+# The paper's models as the code builds them: the learner's class (with EDMD's dictionary, which
+# makes it ELM-EDMD), so that every preset of one, with our recipe or the paper's, is set beside
+# the paper's numbers; a preset with the random layer on is the paper's random-layer model.
+PAPER_MODELS: dict[tuple[str, str | None], str] = {
+    ("learners.edmd.EDMD", "learners.dictionaries.ThinPlateRBF"): "EDMD",
+    ("learners.edmd.EDMD", "learners.dictionaries.RandomFeatures"): "ELM-EDMD",
+    ("learners.dnn.DNN", None): "DNN",
+    ("learners.deep_edmd.DeepEDMD", None): "Deep EDMD",
 }
 
 
-def paper_reported(learner: str) -> str:
-    """The paper's own whole-drive RMSE for ``learner``'s model, mean of its two test episodes
-    as our cells are of ours; "—" for a model that is not the paper's."""
-    model = PAPER_MODEL_OF.get(learner)
+def paper_model(learner: Any) -> str | None:
+    """The paper's name for the model a job's ``learner`` config builds (its Tables' rows), None
+    for a model that is not the paper's (ours, the baselines, a wrapped or extended one)."""
+    target = OmegaConf.select(learner, "_target_", default=None)
+    dictionary = OmegaConf.select(learner, "dictionary._target_", default=None)
+    model = PAPER_MODELS.get((target, dictionary))
+    if model is not None and OmegaConf.select(learner, "random_layer.enabled", default=False):
+        model = f"{model}, random layer"
+    return model
+
+
+def paper_reported(model: str | None) -> str:
+    """The paper's own whole-drive RMSE for ``model`` (:func:`paper_model`), the mean of its two
+    test episodes as our cells are of ours; "—" for a model that is not the paper's."""
     if model is None:
         return "—"
     first, second = PAPER_REPORTED[model]
@@ -94,6 +105,11 @@ def headline(study: Path) -> str:
     runs = load(study)
     jobs = runs.drop_duplicates("job")
     learners = sorted(set(jobs.learner) - {"persistence"}, key=_order)
+    models = {
+        run.learner: paper_model(OmegaConf.select(run.config, "learner"))
+        for run in read_runs(study)
+        if run.config is not None
+    }
     lines = [
         "| learner | jobs | whole test drive: vx / vy / r | the paper's, its model | "
         "3 s windows: vx / vy / r | "
@@ -104,7 +120,7 @@ def headline(study: Path) -> str:
         own = jobs[jobs.learner == learner]
         closed = runs[(runs.learner == learner) & (runs.reference == LANE_CHANGE)]
         whole, windows = _prediction(own, "rmse"), _prediction(own, "rmse_window_3s")
-        paper = paper_reported(learner)
+        paper = paper_reported(models.get(learner))
         lines.append(
             f"| {_name(learner)} | {_jobs(own)} | {whole} | {paper} | {windows} | "
             f"{_lane(closed, MAIN, DRY)} / {_lane(closed, MAIN, WET)} | "
