@@ -231,11 +231,9 @@ def robustness_table(jobs: list[Run]) -> Table:
 
 
 def _mean_prediction(section: Mapping[str, Any], state: str) -> float | None:
-    """Open-loop RMSE of one state averaged over a section's test episodes; None where one of
-    them diverged (:func:`_diverged`: counted, not averaged)."""
+    """Open-loop RMSE of one state averaged over a section's test episodes (the caller leaves
+    out a section whose rollout diverged, :func:`_diverged`: counted, not averaged)."""
     episodes = section.get("prediction") or {}
-    if _diverged(section):
-        return None
     per_episode = [_get(v, "rmse", state) for e, v in episodes.items() if e not in _NOT_EPISODES]
     numbers = [v for v in per_episode if v is not None]
     return sum(numbers) / len(numbers) if numbers else None
@@ -301,13 +299,14 @@ def generalization_table(jobs: list[Run]) -> Table:
                 reference: [_first_controller_run(s, reference) for s in sections]
                 for reference in references
             }
-            gone = sum(_diverged(s) for s in sections)
+            finite = [s for s in sections if not _diverged(s)]
+            gone = len(sections) - len(finite)
             note = f" ({gone} of {len(sections)} diverged)" if gone else ""
-            predicted = [
-                _mean_std(_mean_prediction(s, state) for s in sections) + note for state in STATES
-            ]
-            if gone == len(sections):
-                predicted = [f"diverged ({gone} of {gone})"] * len(STATES)
+            predicted = (
+                [_mean_std(_mean_prediction(s, state) for s in finite) + note for state in STATES]
+                if finite
+                else [f"diverged ({gone} of {gone})"] * len(STATES)
+            )
             table.rows.append(
                 [learner, plant, target, varied or "—", str(len(sections))]
                 + predicted
