@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from harness.report.jobs import HYDRA_FILE, Run, common_overrides, read_run, read_runs, variant
 
-__all__ = ["flatten", "load"]
+__all__ = ["flatten", "frame", "load", "read_jobs"]
 
 
 def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -54,10 +54,24 @@ def load(path: str | Path) -> pd.DataFrame:
     Raises:
         ValueError: (one line) when ``path`` holds no job.
     """
+    return frame(read_jobs(path))
+
+
+def read_jobs(path: str | Path) -> list[Run]:
+    """The jobs below ``path`` (a sweep, a study, or one job directory), read once.
+
+    Raises:
+        ValueError: (one line) when ``path`` holds no job.
+    """
     path = Path(path)
     runs = [read_run(path)] if (path / HYDRA_FILE).is_file() else read_runs(path)
     if not runs:
         raise ValueError(f"{path} holds no Hydra job directories ({HYDRA_FILE})")
+    return runs
+
+
+def frame(runs: list[Run]) -> pd.DataFrame:
+    """Jobs already read (:func:`read_jobs`) as :func:`load`'s table."""
     common = common_overrides(runs)
     rows = []
     for run in runs:

@@ -30,7 +30,7 @@ import pandas as pd
 from omegaconf import OmegaConf
 
 from harness.core.files import write_text_atomic
-from harness.report.frame import load
+from harness.report.frame import frame, load, read_jobs
 from harness.report.jobs import read_runs
 from harness.report.summary import summary, title
 
@@ -102,12 +102,13 @@ def paper_reported(model: str | None) -> str:
 
 def headline(study: Path) -> str:
     """The headline table of ``study`` (see the module docstring), with its source line."""
-    runs = load(study)
+    read = read_jobs(study)
+    runs = frame(read)
     jobs = runs.drop_duplicates("job")
     learners = sorted(set(jobs.learner) - {"persistence"}, key=_order)
     models = {
         run.learner: paper_model(OmegaConf.select(run.config, "learner"))
-        for run in read_runs(study)
+        for run in read
         if run.config is not None
     }
     lines = [
