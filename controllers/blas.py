@@ -6,50 +6,12 @@ a few hundred rows every 10 ms, that is a loss even on an idle machine and a dis
 shared one: measured on the 2 shared cores of this project (load 4.9), a 60/50 step on a
 four-state bilinear model took 200 ms with the default threads and 7 ms with one.
 :func:`single_threaded` sets every loaded OpenBLAS to one thread for the duration of a block
-and restores the previous count (no new dependency: the libraries' own setters, via ctypes).
+and restores the previous count (the libraries' own setters: ``harness.core.threads.openblas``).
 """
 
 from __future__ import annotations
 
-import ctypes
-from pathlib import Path
-from typing import Any
-
-# Setter and getter names of the OpenBLAS builds NumPy and SciPy ship (64- and 32-bit ints).
-_SYMBOLS = (
-    ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
-    ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
-    ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
-    ("openblas_set_num_threads", "openblas_get_num_threads"),
-)
-_libraries: list[tuple[Any, Any]] | None = None
-
-
-def _openblas() -> list[tuple[Any, Any]]:
-    """(set, get) of every OpenBLAS mapped into this process (found once, after import)."""
-    global _libraries
-    if _libraries is None:
-        import numpy  # noqa: F401  (both libraries are mapped once these are imported)
-        import scipy.linalg  # noqa: F401
-
-        found = []
-        maps = Path("/proc/self/maps")
-        paths = (
-            {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line}
-            if maps.exists()
-            else set()
-        )
-        for path in sorted(paths):
-            try:
-                library = ctypes.CDLL(path)
-            except OSError:
-                continue
-            for setter, getter in _SYMBOLS:
-                if hasattr(library, setter) and hasattr(library, getter):
-                    found.append((getattr(library, setter), getattr(library, getter)))
-                    break
-        _libraries = found
-    return _libraries
+from harness.core.threads import openblas
 
 
 class single_threaded:  # noqa: N801  (used as a function: ``with single_threaded():``)
@@ -62,13 +24,13 @@ class single_threaded:  # noqa: N801  (used as a function: ``with single_threade
     __slots__ = ("_before",)
 
     def __enter__(self) -> None:
-        libraries = _openblas()
+        libraries = openblas()
         self._before = [int(get()) for _, get in libraries]
         for (set_threads, _), count in zip(libraries, self._before, strict=True):
             if count != 1:
                 set_threads(1)
 
     def __exit__(self, *_: object) -> None:
-        for (set_threads, _), count in zip(_openblas(), self._before, strict=True):
+        for (set_threads, _), count in zip(openblas(), self._before, strict=True):
             if count != 1:
                 set_threads(count)

@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.config import register_configs, validate
+from harness.core.checks import integer
 from harness.core.files import (
     DirectoryInUseError,
     lock_directory,
@@ -29,6 +30,7 @@ from harness.core.files import (
     write_json_atomic,
 )
 from harness.core.paths import CONF_DIR
+from harness.core.threads import use_threads
 from harness.output import update_metrics
 from harness.report.jobs import NEUTRAL, job_dirname
 from harness.report.summary import summary, title
@@ -43,6 +45,10 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
     """Build plant, recorder and task from ``cfg``; run the task; return its metrics sections."""
     task_name = HydraConfig.get().runtime.choices["task"]
     validate(cfg)  # every range check of every block, before anything is built or run
+    threads = cfg.get("threads")
+    if threads is not None:
+        integer("threads", threads, 1)
+    use_threads(threads)  # before any work: the same numbers whatever OMP_NUM_THREADS says
     plant = instantiate(cfg.plant)
     make_recorder = instantiate(cfg.recorder)
     task = instantiate(cfg.task)

@@ -42,7 +42,6 @@ import io
 import json
 import logging
 import math
-import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -95,7 +94,8 @@ class TrainingConfig:
     Paper values: Adam, lr 1e-4, batch 64, ~1e5 batches, and (the defaults here) a constant
     rate, no clipping, no curriculum, no noise, checkpoints chosen by the window loss.
     ``max_epochs`` None means no epoch limit; at least one of ``max_steps`` / ``max_epochs``
-    must be set. ``num_threads`` None uses :func:`default_threads`.
+    must be set. ``num_threads`` None trains on the threads in force (the job's ``threads``,
+    ``harness/core/threads.py``); a number sets PyTorch's intra-op threads for training alone.
 
     Ours (not in the paper): ``selection: rollout`` keeps the checkpoint whose open-loop
     rollout of the validation drives has the lowest mean over drives and states of
@@ -624,21 +624,11 @@ def _digest(fingerprint: Mapping[str, Any]) -> str:
     return hashlib.sha1(json.dumps(fingerprint, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def default_threads() -> int:
-    """``OMP_NUM_THREADS`` where a launcher set it (joblib's workers get cores / jobs), else
-    every core this process may run on: parallel jobs must not each take every core."""
-    cores = len(os.sched_getaffinity(0))
-    try:
-        return max(1, min(cores, int(os.environ.get("OMP_NUM_THREADS", cores))))
-    except ValueError:
-        return cores
-
-
 @contextlib.contextmanager
 def _torch_threads(count: int | None) -> Iterator[None]:
-    """Run with ``count`` intra-op threads (default: :func:`default_threads`), then restore."""
+    """Run with ``count`` intra-op threads (None: those in force), then restore."""
     before = torch.get_num_threads()
-    torch.set_num_threads(count or default_threads())
+    torch.set_num_threads(count or before)
     _keep_freed_memory()
     try:
         yield

@@ -2,11 +2,12 @@
 
 import pytest
 
-from controllers.blas import _openblas, single_threaded
+from controllers.blas import single_threaded
+from harness.core.threads import openblas
 
 
 def test_single_threaded_runs_every_openblas_on_one_thread_and_restores_the_count() -> None:
-    libraries = _openblas()
+    libraries = openblas()
     if not libraries:
         pytest.skip("no OpenBLAS is loaded in this process")
     original = [int(get()) for _, get in libraries]

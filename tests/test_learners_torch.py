@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -441,15 +440,30 @@ def test_one_refit_at_a_time() -> None:
         DeepEDMD(refit_koopman_lstsq=True, refit_inputs_lstsq=True)
 
 
-def test_training_threads_follow_omp_num_threads_so_parallel_jobs_share_the_cores(
-    monkeypatch: pytest.MonkeyPatch,
+def test_training_keeps_the_threads_in_force_unless_num_threads_says_otherwise(
+    data: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from learners.training import default_threads
+    """``num_threads`` null trains on the job's threads (harness.core.threads); a number holds
+    for the fit alone, and the caller's count is back after it."""
+    args = (data["train"], data["validation"], data["normalizer"])
+    before = torch.get_num_threads()
+    set_threads = torch.set_num_threads
+    seen: list[int] = []
 
-    monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    assert default_threads() == 1
-    monkeypatch.delenv("OMP_NUM_THREADS")
-    assert default_threads() == len(os.sched_getaffinity(0))
+    def recording(count: int) -> None:
+        seen.append(count)
+        set_threads(count)
+
+    try:
+        set_threads(1)
+        monkeypatch.setattr(torch, "set_num_threads", recording)
+        small(DNN).fit(*args)
+        assert set(seen) <= {1}  # null: the threads in force, nothing else
+        seen.clear()
+        small(DNN, training={"num_threads": 2}).fit(*args)
+        assert seen[0] == 2 and seen[-1] == 1 and torch.get_num_threads() == 1
+    finally:
+        set_threads(before)
 
 
 def test_bilinear_deep_edmd_is_deep_edmds_network_with_a_bilinear_operator(

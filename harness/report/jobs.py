@@ -42,6 +42,7 @@ NAMED = frozenset({"learner", "plant", "controller", "seed"})
 NEUTRAL = frozenset(
     {
         "recorder",
+        "threads",
         "data.root",
         "data.workers",
         "learner.training.progress",

@@ -1,0 +1,90 @@
+"""How many threads a job computes on: one by default, whatever the environment says.
+
+The harness's networks are small (batches of 64, layers of 128) and its matrices a few hundred
+rows: split over threads, each operation waits for the slowest core. Measured on 2 shared cores
+(``bench/threads.py``, docs/guide/benchmarks.md): two intra-op threads were never faster than one
+on an idle machine and many times slower beside another process, and the metrics moved with the
+thread count (a reduction summed in another order). So a job computes on ``threads`` (the
+top-level config key, default 1) PyTorch and OpenBLAS threads, set here once before any work,
+and a machine's cores are used by running jobs side by side (``hydra/launcher=local_cores``).
+
+NumPy and SciPy each bundle an OpenBLAS that reads ``OMP_NUM_THREADS`` once, when it loads;
+:func:`openblas` finds every one mapped into the process and sets it through its own setter
+(ctypes, no new dependency). PyTorch's MKL and OpenMP follow ``torch.set_num_threads``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from pathlib import Path
+from typing import Any
+
+# Setter and getter names of the OpenBLAS builds NumPy and SciPy ship (64- and 32-bit ints).
+_SYMBOLS = (
+    ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+    ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
+    ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+    ("openblas_set_num_threads", "openblas_get_num_threads"),
+)
+_libraries: list[tuple[Any, Any]] | None = None
+
+
+def openblas() -> list[tuple[Any, Any]]:
+    """(set, get) of every OpenBLAS mapped into this process (found once, after import)."""
+    global _libraries
+    if _libraries is None:
+        import numpy  # noqa: F401  (both libraries are mapped once these are imported)
+        import scipy.linalg  # noqa: F401
+
+        found = []
+        maps = Path("/proc/self/maps")
+        paths = (
+            {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line}
+            if maps.exists()
+            else set()
+        )
+        for path in sorted(paths):
+            try:
+                library = ctypes.CDLL(path)
+            except OSError:
+                continue
+            for setter, getter in _SYMBOLS:
+                if hasattr(library, setter) and hasattr(library, getter):
+                    found.append((getattr(library, setter), getattr(library, getter)))
+                    break
+        _libraries = found
+    return _libraries
+
+
+def environment_threads() -> int:
+    """What the environment would give a job: ``OMP_NUM_THREADS`` where a launcher set it
+    (joblib's workers get cores / jobs, Ray a job's ``num_cpus``), else every core this
+    process may run on."""
+    cores = len(os.sched_getaffinity(0))
+    try:
+        return max(1, min(cores, int(os.environ.get("OMP_NUM_THREADS", cores))))
+    except ValueError:
+        return cores
+
+
+def use_threads(count: int | None) -> int:
+    """Compute on ``count`` threads from now on (None: :func:`environment_threads`), in PyTorch
+    (intra-op, MKL, OpenMP) and in every loaded OpenBLAS; returns the count set."""
+    import torch
+
+    count = environment_threads() if count is None else count
+    torch.set_num_threads(count)
+    for set_threads, _ in openblas():
+        set_threads(count)
+    return count
+
+
+def threads_in_use() -> dict[str, Any]:
+    """The thread counts in force, for ``metrics.json`` (``run.threads``)."""
+    import torch
+
+    return {
+        "torch": torch.get_num_threads(),
+        "openblas": [int(get()) for _, get in openblas()],
+    }
