@@ -30,7 +30,7 @@ import math
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any, cast
 
 import numpy as np
@@ -250,6 +250,13 @@ class DEMPCConfig:
             )
         return spans
 
+    def without_path(self) -> DEMPCConfig:
+        """These settings as they drive a reference with no path: a path follower tracks its
+        states there, bit for bit as the same settings with ``reference: states`` would (the
+        pipeline runs such twins once)."""
+        default_q_path = next(f.default for f in fields(DEMPCConfig) if f.name == "Q_path")
+        return replace(self, reference="states", Q_path=default_q_path)
+
     def path_weights(self) -> np.ndarray:
         """Q_path as a (5, 5) diagonal: non-negative, and the path's errors weighed at all."""
         try:
@@ -403,7 +410,7 @@ class DEMPC:
         self._path = path if self.path_qp is not None else None
         self._path_hint = None
         if self.path_qp is not None and path is None:
-            log.info("controller.reference=path: this run has no path, tracking its states")
+            log.debug("controller.reference=path: this run has no path, tracking its states")
         self._start(u_prev)
 
     def _start(self, u_prev: np.ndarray | None) -> None:

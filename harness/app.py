@@ -30,6 +30,7 @@ from harness.core.files import (
     write_json_atomic,
 )
 from harness.core.paths import CONF_DIR
+from harness.core.phases import seconds
 from harness.core.threads import use_threads
 from harness.output import update_metrics
 from harness.report.jobs import NEUTRAL, job_dirname
@@ -48,15 +49,25 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
     threads = cfg.get("threads")
     if threads is not None:
         integer("threads", threads, 1)
-    use_threads(threads)  # before any work: the same numbers whatever OMP_NUM_THREADS says
+    # Before any work: the same numbers whatever OMP_NUM_THREADS says (harness/core/threads.py).
+    threads_set = use_threads(threads)
     plant = instantiate(cfg.plant)
     make_recorder = instantiate(cfg.recorder)
     task = instantiate(cfg.task)
+    start = time.perf_counter()
     with make_recorder(path=output_dir / f"{task_name}.rrd") as recorder:
         sections = task(plant=plant, recorder=recorder, output_dir=output_dir)
     for section, values in sections.items():
         document = update_metrics(output_dir / "metrics.json", section, values)
-    log.info("wrote %s (%s)", output_dir / "metrics.json", ", ".join(document))
+    log.info(
+        "wrote %s (%s); task=%s took %s on %d thread%s",
+        output_dir / "metrics.json",
+        ", ".join(document),
+        task_name,
+        seconds(time.perf_counter() - start),
+        threads_set,
+        "s" if threads_set > 1 else "",
+    )
     if "tracking" in document or "prediction" in document:
         choices = HydraConfig.get().runtime.choices
         logs = (document.get("data") or {}).get("source") == "logs"  # the report's label

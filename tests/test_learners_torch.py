@@ -889,6 +889,19 @@ def test_schedules_are_functions_of_the_step() -> None:
     assert TrainingConfig(lr=2e-4).lr_at(12345) == 2e-4  # the paper's constant rate
 
 
+def test_the_progress_bar_counts_each_batch_at_its_windows_cost_so_its_estimate_holds() -> None:
+    """Batches of the curriculum's short windows cost less: the bar counts window steps plus a
+    batch's fixed cost, summed phase by phase, so a resumed run starts where the cost stood."""
+    from learners.training import BATCH_FIXED_STEPS as F
+
+    config = TrainingConfig(max_steps=110, curriculum=[[10, 5], [50, 20]])
+    assert config.work_until(0, 200) == 0
+    assert config.work_until(3, 200) == 3 * (10 + F)
+    assert config.work_until(25, 200) == 5 * (10 + F) + 20 * (50 + F)
+    assert config.work_until(110, 200) == 5 * (10 + F) + 20 * (50 + F) + 85 * (200 + F)
+    assert TrainingConfig(max_steps=7).work_until(7, 41) == 7 * (41 + F)  # no curriculum
+
+
 @pytest.mark.parametrize("cls", [DNN, DeepEDMD])
 def test_a_killed_run_with_every_schedule_resumes_to_the_uninterrupted_result(
     cls, data: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch

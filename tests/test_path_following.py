@@ -141,6 +141,29 @@ def test_without_a_path_the_path_mode_tracks_states() -> None:
         controller.act(reference[0], 0.0)
 
 
+def test_without_a_path_a_path_follower_drives_bit_for_bit_as_its_state_twin() -> None:
+    """What lets the pipeline drive such twins once (``DEMPCConfig.without_path``): with no path
+    the path follower's inputs equal, bit for bit, those of the same settings tracking states."""
+    model = known_model()
+    model.normalizer_ = MinMaxNormalizer.fit(drives(model, count=1, steps=400))
+    t = np.arange(200) * 0.01
+    reference = np.c_[20 + np.sin(t), 0.02 * np.sin(2 * t), 0.1 * np.sin(2 * t)]
+    follower = BicycleMPCConfig(reference="path", Q_path=(10.0, 0.0, 30.0, 3.0, 30.0))
+    assert follower.without_path() == BicycleMPCConfig()
+    inputs = []
+    for config in (follower, follower.without_path()):
+        controller = config(model, 0.01)
+        controller.reset(reference)
+        x, applied = reference[0].copy(), []
+        for k in range(len(reference)):
+            u, _ = controller.act(x, k * 0.01)
+            applied.append(u)
+            x = model.predict(x, u[None])[1]
+        inputs.append(np.array(applied))
+    np.testing.assert_array_equal(inputs[0], inputs[1])
+    assert np.abs(inputs[0][:, 0]).max() > 1.0  # it steered: a comparison of something
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [

@@ -337,8 +337,14 @@ def test_the_lane_change_is_judged_on_its_course(edmd_run) -> None:
     assert set(run["final_error"]) == {"vx", "vy", "yaw_rate"}
     followed = metrics["tracking"]["controllers"]["follower"]
     assert followed["lane_change"]["follows_path"]  # on the course it steers by the path
-    (drive,) = (followed[label] for label in followed if label.startswith("test_episode"))
+    (label,) = (label for label in followed if label.startswith("test_episode"))
+    drive = followed[label]
     assert not drive["follows_path"]  # a test drive has no path: its states are tracked
+    # ... as de_mpc, whose settings it has but the path: de_mpc's run, not driven twice
+    assert drive == {**metrics["tracking"]["controllers"]["de_mpc"][label], "same_run_as": "de_mpc"}
+    for suffix in (".npz", ".png"):
+        twin = (out / f"tracking_de_mpc_test_episode{suffix}").read_bytes()
+        assert (out / f"tracking_follower_test_episode{suffix}").read_bytes() == twin
     path = run["path"]
     assert path["cones"] == 50 and 0 <= path["cones_hit"] <= 50
     assert path["passed"] == (path["reached_exit"] and path["cones_hit"] == 0)

@@ -132,10 +132,13 @@ def test_a_training_killed_with_sigkill_resumes_to_the_uninterrupted_result(
         os.kill(process.pid, signal.SIGKILL)
         process.wait()
     assert process.returncode == -signal.SIGKILL
-    saved = _read_checkpoint(checkpoint)["state"]["step"]
-    assert 0 < saved < MAX_STEPS  # killed in the middle
+    saved = _read_checkpoint(checkpoint)["state"]
+    assert 0 < saved["step"] < MAX_STEPS  # killed in the middle
     resumed = tiny(kind, killed_dir).fit(*data)
     whole = tiny(kind, tmp_path / "whole").fit(*data)
+    # the killed run's training time up to its checkpoint is counted, not forgotten
+    assert saved["trained_s"] > 0 and resumed.history_.resumed_s == saved["trained_s"]
+    assert whole.history_.resumed_s == 0.0
     assert resumed.history_.step[-1] == MAX_STEPS
     assert resumed.history_.validation[-1]["loss"] == whole.history_.validation[-1]["loss"]
     assert resumed.history_ == whole.history_

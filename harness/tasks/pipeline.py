@@ -3,7 +3,8 @@
 Sections written to ``metrics.json``:
 
 - ``data``: the dataset used (see ``harness/data/collect.py``);
-- ``training``: the learner, its fit time and where the model file is; ``training.provenance``
+- ``training``: the learner, its fit time (a resumed training's runs before it included:
+  ``fit_time_before_resume_s``) and where the model file is; ``training.provenance``
   what the model was trained on against this run (a ``task.model_path`` of another plant,
   dataset or normalizer is named in a warning; see ``harness/tasks/provenance.py``);
 - ``prediction``: per test episode, RMSE of the open-loop prediction over the whole episode
@@ -32,8 +33,10 @@ Beside ``metrics.json`` it leaves the arrays behind its figures (``prediction_<e
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -46,6 +49,7 @@ from controllers.config import ControllerFactory, OwnModelFactory
 from harness.core.checks import integer, is_number
 from harness.core.contracts import INPUT_NAMES, LiftedModel, Model, dynamics_of
 from harness.core.episode import Episode
+from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, drive_again
@@ -156,7 +160,9 @@ class Pipeline:
         tracking and other plants. On a user's logs those need the car that made the logs and
         are skipped, each named in one line saying why, unless the user says ``plant`` made
         them (``task.logs_from_plant``); the spectrum is at the logs' period."""
-        dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
+        with Phase("data") as phase:
+            dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
+            phase.done = data_done(self.data.name, data_metrics)
         logs = dataset.from_logs
         on_plant = not logs or self.logs_from_plant
         if logs and self.logs_from_plant:
@@ -169,22 +175,32 @@ class Pipeline:
             check_training_data(dataset)
         sections: dict[str, Any] = {"data": data_metrics}
         this_run = provenance.of_logs(dataset) if logs else provenance.of_run(plant, dataset)
-        learner, sections["training"] = self._learner(dataset, this_run, recorder, output_dir)
-        prediction = self._predict(learner, dataset.test, recorder, output_dir)
-        sections["prediction"] = prediction
-        if on_plant:
-            prediction["step_response"] = self._step_response(learner, plant, recorder, output_dir)
-        period = dataset.period_s if logs else plant.dt
-        sections["spectrum"] = self._spectrum(learner, period, recorder, output_dir)
-        if learner.redraws_random_layer:
-            repeated = robustness(
-                {self.learner_name: learner},
-                dataset.test,
-                self.robustness_repeats,
-                recorder=recorder,
-                output_dir=output_dir,
-            )
-            sections["robustness"] = _one_learner(repeated, self.learner_name)
+        with Phase("training") as phase:
+            learner, training = self._learner(dataset, this_run, recorder, output_dir)
+            phase.done = training_done(learner, training)
+        sections["training"] = training
+        with Phase("prediction") as phase:
+            prediction = self._predict(learner, dataset.test, recorder, output_dir)
+            sections["prediction"] = prediction
+            done = [f"{len(dataset.test)} test drives open loop"]
+            if on_plant:
+                prediction["step_response"] = self._step_response(
+                    learner, plant, recorder, output_dir
+                )
+                done.append("step responses")
+            period = dataset.period_s if logs else plant.dt
+            sections["spectrum"] = self._spectrum(learner, period, recorder, output_dir)
+            if learner.redraws_random_layer:
+                repeated = robustness(
+                    {self.learner_name: learner},
+                    dataset.test,
+                    self.robustness_repeats,
+                    recorder=recorder,
+                    output_dir=output_dir,
+                )
+                sections["robustness"] = _one_learner(repeated, self.learner_name)
+                done.append(f"{self.robustness_repeats} redrawn random layers")
+            phase.done = ", ".join(done)
         if not on_plant:
             return sections | self._skipped_on_logs(prediction)
         models = self._controller_models(learner, dataset)
@@ -239,6 +255,9 @@ class Pipeline:
             )
             source = "trained"
         fit_time = time.perf_counter() - start
+        # A training resumed from its checkpoint: the runs before this one count too.
+        history = getattr(learner.core, "history_", None) if self.loaded is None else None
+        before_resume = float(getattr(history, "resumed_s", 0.0))
         recorded = learner.provenance_ if self.loaded is not None else this_run
         trained_on = provenance.compare(
             source, recorded, learner.normalizer_, this_run, dataset.normalizer
@@ -247,7 +266,8 @@ class Pipeline:
         summary = {
             "learner": self.learner_name,
             "source": source,
-            "fit_time_s": fit_time,
+            "fit_time_s": fit_time + before_resume,
+            "fit_time_before_resume_s": before_resume,
             "model_path": str(model_file),
             "train_frames": sum(len(e) for e in dataset.train),
             "provenance": trained_on,
@@ -291,17 +311,28 @@ class Pipeline:
         reported as the controller's ``skipped`` instead of failing the run."""
         models: dict[str, Learner | str] = {}
         reason = _not_lifted_linear(learner)
+        fitted: dict[str, Learner | ValueError] = {}  # one fit per distinct own model
         for name, make in self.controllers.items():
             if not isinstance(make, OwnModelFactory):
                 # A model no MPC reads (persistence) skips its controllers, not the baseline.
                 models[name] = f"{self.learner_name} {reason}" if reason else learner
                 continue
             own = make.learner()
-            try:
-                models[name] = own.fit(dataset.train, dataset.validation, dataset.normalizer)
-            except ValueError as error:
-                log.warning("%s not tracked: %s", name, error)
-                models[name] = f"{name} could not identify its {own.name} model: {error}"
+            key = json.dumps([type(own).__name__, own.hyperparameters], sort_keys=True, default=str)
+            if key not in fitted:
+                with Phase(f"identification {own.name}") as phase:
+                    try:
+                        fitted[key] = own.fit(dataset.train, dataset.validation, dataset.normalizer)
+                        phase.done = f"fitted on the training drives, for {name}"
+                    except ValueError as error:
+                        fitted[key] = error
+                        phase.done = f"refused the training drives: {error}"
+            model = fitted[key]
+            if isinstance(model, ValueError):
+                log.warning("%s not tracked: %s", name, model)
+                models[name] = f"{name} could not identify its {own.name} model: {model}"
+            else:
+                models[name] = model
         return models
 
     def _track(
@@ -330,6 +361,8 @@ class Pipeline:
         centre_lines = {name: course.path() for name, course in courses.items()}
         paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
         by_controller: dict[str, dict[str, Any]] = {}
+        # (reference, model, settings without a path) -> the controller that drove it first
+        driven: dict[tuple[str, int, str], str] = {}
         for controller_name, make_controller in self.controllers.items():
             model = models[controller_name]
             if isinstance(model, str):
@@ -338,36 +371,53 @@ class Pipeline:
             # The run's learner passed _not_lifted_linear; an own model is linearizable.
             assert isinstance(model, Model)
             runs: dict[str, Any] = {}
-            for name, (label, reference) in targets.items():
-                controller = make_controller(model, plant.dt)
-                stem = f"tracking_{controller_name}_{name}"
-                rollout = f"{prefix}tracking/{controller_name}/{label}"
-                metrics, run = track(
-                    plant,
-                    controller,
-                    reference,
-                    name=rollout,
-                    recorder=recorder,
-                    figure_path=output_dir / f"{stem}.png",
-                    arrays_path=output_dir / f"{stem}.npz",
-                    tab_priority=2 if name in courses else 1,  # the recording opens on a course
-                    path=centre_lines.get(name),
-                    compute_delay=make_controller.compute_delay,
-                )
-                if name in courses:
-                    metrics["path"] = {
-                        **path_metrics(courses[name], run.poses, run.states),
-                        "reference_speed_mps": float(reference[0, 0]),
-                    }
-                    record_course(recorder, rollout, courses[name])
-                    paths[name][controller_name] = run.poses
-                    log.info(
-                        "%s%s on the %s course: %s", prefix, controller_name, label, metrics["path"]
+            with Phase(f"{prefix}tracking {controller_name}") as phase:
+                for name, (label, reference) in targets.items():
+                    stem = f"tracking_{controller_name}_{name}"
+                    twin = _twin_key(name, model, make_controller, centre_lines.get(name))
+                    if twin in driven:  # the same run, bit for bit: copied, not driven again
+                        first = driven[twin]
+                        runs[label] = {**by_controller[first][label], "same_run_as": first}
+                        for suffix in (".npz", ".png"):
+                            source = output_dir / f"tracking_{first}_{name}{suffix}"
+                            if source.exists():
+                                shutil.copyfile(source, output_dir / f"{stem}{suffix}")
+                        continue
+                    if twin is not None:
+                        driven[twin] = controller_name
+                    controller = make_controller(model, plant.dt)
+                    rollout = f"{prefix}tracking/{controller_name}/{label}"
+                    metrics, run = track(
+                        plant,
+                        controller,
+                        reference,
+                        name=rollout,
+                        recorder=recorder,
+                        figure_path=output_dir / f"{stem}.png",
+                        arrays_path=output_dir / f"{stem}.npz",
+                        tab_priority=2 if name in courses else 1,  # the recording opens on a course
+                        path=centre_lines.get(name),
+                        compute_delay=make_controller.compute_delay,
                     )
-                runs[label] = metrics
-                log.info(
-                    "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
-                )
+                    if name in courses:
+                        metrics["path"] = {
+                            **path_metrics(courses[name], run.poses, run.states),
+                            "reference_speed_mps": float(reference[0, 0]),
+                        }
+                        record_course(recorder, rollout, courses[name])
+                        paths[name][controller_name] = run.poses
+                        log.debug(
+                            "%s%s on the %s course: %s",
+                            prefix,
+                            controller_name,
+                            label,
+                            metrics["path"],
+                        )
+                    runs[label] = metrics
+                    log.debug(
+                        "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
+                    )
+                phase.done = tracking_done(runs)
             by_controller[controller_name] = runs
         for name, course in courses.items():
             save_arrays(output_dir / f"course_{name}.npz", **course.as_arrays())
@@ -519,3 +569,55 @@ def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str,
         episode: dict(values[learner_name]) if learner_name in values else dict(values)
         for episode, values in predictions.items()
     }
+
+
+def data_done(name: str, metrics: Mapping[str, Any]) -> str:
+    """The data phase's line: which drives, and whether this job drove or found them."""
+    coverage = metrics.get("coverage", {})
+    drives = f"{coverage.get('episodes', '?')} drives ({coverage.get('frames', 0):,} frames)"
+    if metrics.get("source") == "logs":
+        return f"{name}: {drives} of logs, stored at {metrics['path']}"
+    collected = metrics.get("episodes_collected", 0)
+    if collected:
+        return f"{name}: {drives}, {collected} collected now, into {metrics['path']}"
+    return f"{name}: {drives} found in the cache, {metrics['path']}"
+
+
+def training_done(learner: Learner, training: Mapping[str, Any]) -> str:
+    """The training phase's line: loaded, fitted, or trained for how many batches."""
+    if training["source"] != "trained":
+        return f"{training['learner']} loaded from {training['source']}"
+    history = getattr(learner.core, "history_", None)
+    if history is None or not history.step:
+        return f"{training['learner']} fitted on {training['train_frames']:,} frames"
+    done = f"{training['learner']}: {history.step[-1]} batches ({history.stopped or 'done'})"
+    if training.get("fit_time_before_resume_s"):
+        before = seconds(training["fit_time_before_resume_s"])
+        done += f", resumed from its checkpoint after {before} of training"
+    return done
+
+
+def tracking_done(runs: Mapping[str, Mapping[str, Any]]) -> str:
+    """A controller's line: each reference it drove, a course with its verdict."""
+    done = []
+    for label, metrics in runs.items():
+        course = metrics.get("path")
+        if course is None:
+            done.append(label)
+        else:
+            verdict = "passed" if course.get("passed") else "FAILED"
+            done.append(f"{label} {verdict} ({course.get('cones_hit', 0)} cones)")
+    return ", ".join(done)
+
+
+def _twin_key(
+    reference: str, model: Model, make: ControllerFactory, path: object | None
+) -> tuple[str, int, str] | None:
+    """What makes two controllers' runs of ``reference`` the same run: a reference without a
+    path is driven by a path follower as by its state-tracking twin (``without_path``), so the
+    pipeline drives it once (``experiment=paper``'s ``*_path`` controllers on the test drive).
+    None: no such settings, or a path to follow."""
+    without_path = getattr(make, "without_path", None)
+    if path is not None or without_path is None:
+        return None
+    return reference, id(model), repr(without_path())
