@@ -376,10 +376,13 @@ class Pipeline:
                     stem = f"tracking_{controller_name}_{name}"
                     twin = _twin_key(name, model, make_controller, centre_lines.get(name))
                     if twin in driven:  # the same run, bit for bit: copied, not driven again
-                        first = driven[twin]
-                        runs[label] = {**by_controller[first][label], "same_run_as": first}
+                        twin_name = driven[twin]
+                        runs[label] = {
+                            **by_controller[twin_name][label],
+                            "same_run_as": twin_name,
+                        }
                         for suffix in (".npz", ".png"):
-                            source = output_dir / f"tracking_{first}_{name}{suffix}"
+                            source = output_dir / f"tracking_{twin_name}_{name}{suffix}"
                             if source.exists():
                                 shutil.copyfile(source, output_dir / f"{stem}{suffix}")
                         continue
