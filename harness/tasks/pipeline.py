@@ -577,13 +577,14 @@ def _one_learner(predictions: Mapping[str, Any], learner_name: str) -> dict[str,
 def data_done(name: str, metrics: Mapping[str, Any]) -> str:
     """The data phase's line: which drives, and whether this job drove or found them."""
     coverage = metrics.get("coverage", {})
-    drives = f"{coverage.get('episodes', '?')} drives ({coverage.get('frames', 0):,} frames)"
+    frames = f"{coverage.get('frames', 0):,} frames"
+    drives = f"data={name}, {coverage.get('episodes', '?')} drives ({frames})"
     if metrics.get("source") == "logs":
-        return f"{name}: {drives} of logs, stored at {metrics['path']}"
+        return f"{drives} of logs, stored at {metrics['path']}"
     collected = metrics.get("episodes_collected", 0)
     if collected:
-        return f"{name}: {drives}, {collected} collected now, into {metrics['path']}"
-    return f"{name}: {drives} found in the cache, {metrics['path']}"
+        return f"{drives}, {collected} collected now into {metrics['path']}"
+    return f"{drives} found in the cache at {metrics['path']}"
 
 
 def training_done(learner: Learner, training: Mapping[str, Any]) -> str:
@@ -593,7 +594,8 @@ def training_done(learner: Learner, training: Mapping[str, Any]) -> str:
     history = getattr(learner.core, "history_", None)
     if history is None or not history.step:
         return f"{training['learner']} fitted on {training['train_frames']:,} frames"
-    done = f"{training['learner']}: {history.step[-1]} batches ({history.stopped or 'done'})"
+    stopped = history.stopped.replace("_", " ") or "done"
+    done = f"{training['learner']}, {history.step[-1]} batches (stopped: {stopped})"
     if training.get("fit_time_before_resume_s"):
         before = seconds(training["fit_time_before_resume_s"])
         done += f", resumed from its checkpoint after {before} of training"
