@@ -1,10 +1,11 @@
 """How many threads a job computes on: one by default, whatever the environment says.
 
 The harness's networks are small (batches of 64, layers of 128) and its matrices a few hundred
-rows: split over threads, each operation waits for the slowest core. Measured on 2 shared cores
-(``bench/threads.py``, docs/guide/benchmarks.md): two intra-op threads were never faster than one
-on an idle machine and many times slower beside another process, and the metrics moved with the
-thread count (a reduction summed in another order). So a job computes on ``threads`` (the
+rows: split over threads, each operation waits for the slowest core. Measured on 2 cores
+(``bench/threads.py``, docs/guide/benchmarks.md, "Threads per job"): two threads were as fast as
+one on an idle machine (the paper's Deep EDMD 1.3x faster) and 5-33x slower beside another
+process, and the metrics moved with the thread count (a reduction summed in another order).
+So a job computes on ``threads`` (the
 top-level config key, default 1) PyTorch and OpenBLAS threads, set here once before any work,
 and a machine's cores are used by running jobs side by side (``hydra/launcher=local_cores``).
 
