@@ -1,9 +1,8 @@
 """One line per phase of a run, with its elapsed time: what a user reads while the job works.
 
 A phase says what it did at its end (``data: data=default, 12 drives (34,446 frames) found in
-the cache at … (0.9 s)``);
-the details a phase finds along the way are DEBUG lines (``hydra.verbose=[harness,controllers]``
-shows them).
+the cache at … (0.9 s)``); the details a phase finds along the way are DEBUG lines
+(``hydra.verbose=[harness,controllers]`` shows them).
 """
 
 from __future__ import annotations
