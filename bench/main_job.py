@@ -1,9 +1,10 @@
 """The main job end to end, this checkout against another commit, idle and beside a busy core.
 
-``python -m bench.main_job [--base 6e92ddf] [--load idle busy] [--repeats 1] [-- OVERRIDES]``
-runs ``python -m harness recorder=none`` (the default job, no environment variables: what
-``make run`` runs, less the recording) from this checkout and from a worktree of ``--base`` (made
-under a temporary folder, removed after), interleaved, each into its own run directory with the
+``python -m bench.main_job [--base 6e92ddf] [--this REV] [--load idle busy] [--repeats 1]
+[-- OVERRIDES]`` runs ``python -m harness recorder=none`` (the default job, no environment
+variables: what ``make run`` runs, less the recording) from this checkout (or a worktree of
+``--this``) and from a worktree of ``--base`` (made under a temporary folder, removed after),
+interleaved, each into its own run directory with the
 dataset cache shared (collected once before any timing). "Busy": one CPU-bound process per core
 but one beside the job. It prints per arm the wall time, ``training.fit_time_s``, this checkout's
 phases (its log's phase lines) and the ratio base / this checkout; and whether the two give the
@@ -74,6 +75,7 @@ def run_job(code: Path, run_dir: Path, cache: Path, overrides: list[str]) -> dic
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--base", default="6e92ddf", help="the commit to compare with")
+    parser.add_argument("--this", help="a commit to run instead of this checkout's working tree")
     parser.add_argument("--load", nargs="+", default=["idle", "busy"], choices=["idle", "busy"])
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("overrides", nargs="*", help="after --: overrides for both jobs")
@@ -81,12 +83,17 @@ def main() -> None:
     cores = len(os.sched_getaffinity(0))
     print(describe())
     with tempfile.TemporaryDirectory() as tmp:
-        base = Path(tmp) / "base"
-        subprocess.run(
-            ["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", str(base), args.base],
-            check=True,
-            capture_output=True,
-        )
+        base, this = Path(tmp) / "base", REPO_ROOT
+        worktrees = [(base, args.base)]
+        if args.this:
+            this = Path(tmp) / "this"
+            worktrees.append((this, args.this))
+        for folder, commit in worktrees:
+            subprocess.run(
+                ["git", "-C", str(REPO_ROOT), "worktree", "add", "--detach", str(folder), commit],
+                check=True,
+                capture_output=True,
+            )
         try:
             cache = Path(tmp) / "cache"
             collect = [sys.executable, "-m", "harness", "task=collect", "recorder=none"]
@@ -101,18 +108,19 @@ def main() -> None:
             for k in range(args.repeats):
                 for load in args.load:
                     with Busy(max(1, cores - 1) if load == "busy" else 0):
-                        for arm, code in (("base", base), ("this", REPO_ROOT)):
+                        for arm, code in (("base", base), ("this", this)):
                             run_dir = Path(tmp) / f"{arm}_{load}_{k}"
                             result = run_job(code, run_dir, cache, args.overrides)
                             best = results.get((arm, load))
                             if best is None or result["wall_s"] < best["wall_s"]:
                                 results[(arm, load)] = result
         finally:
-            subprocess.run(
-                ["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force", str(base)],
-                check=False,
-                capture_output=True,
-            )
+            for folder, _ in worktrees:
+                subprocess.run(
+                    ["git", "-C", str(REPO_ROOT), "worktree", "remove", "--force", str(folder)],
+                    check=False,
+                    capture_output=True,
+                )
     overrides = " ".join(args.overrides) or "(defaults)"
     print(
         f"\npython -m harness recorder=none {overrides}; base {args.base}; fastest of "
@@ -126,7 +134,8 @@ def main() -> None:
             phases = ", ".join(f"{k} {v:.0f} s" for k, v in result["phases"].items()) or "-"
             ratio = f"{old['wall_s'] / this['wall_s']:.2f}x" if arm == "this" else ""
             print(
-                f"| {load} | {args.base if arm == 'base' else 'this'} | {result['wall_s']:.0f} s "
+                f"| {load} | {args.base if arm == 'base' else args.this or 'this'} "
+                f"| {result['wall_s']:.0f} s "
                 f"| {result['fit_s']:.0f} s | {phases} | {ratio} |"
             )
     for load in args.load:

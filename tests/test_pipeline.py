@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -115,6 +116,27 @@ def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
     assert provenance["this_run"]["plant"] == "sedan"
     assert provenance["this_run"]["dataset"] == metrics["data"]["key"]
     assert provenance["this_run"]["normalizer"] == metrics["data"]["normalizer"]
+
+
+def test_a_run_says_what_each_phase_did_and_how_long_it_took(
+    edmd_run, caplog: pytest.LogCaptureFixture
+) -> None:
+    """One INFO line per phase, in order, each ending with its time; the details (each
+    controller's RMSE, a path follower without a path) are DEBUG lines, not beside them."""
+    tmp, run_dir, _ = edmd_run
+    with caplog.at_level(logging.INFO):
+        run_main(tmp, tmp / "phases", "learner=edmd", f"task.model_path={run_dir}/model_edmd.pt")
+    lines = [r.getMessage() for r in caplog.records if r.name == "harness"]
+    assert [line.split(":")[0] for line in lines] == [
+        "data",
+        "training",
+        "prediction",
+        "identification single_track",  # refused: the tiny drives barely move
+        "tracking de_mpc",
+    ]
+    assert "found in the cache" in lines[0] and "loaded from" in lines[1]
+    assert all(re.search(r"\((\d+ min )?\d+(\.\d)? s\)$", line) for line in lines)
+    assert not [r for r in caplog.records if r.levelno == logging.INFO and "rmse" in r.getMessage()]
 
 
 def test_a_saved_model_used_on_another_dataset_is_named_in_a_warning(
@@ -370,3 +392,38 @@ def test_persistence_as_the_learner_skips_its_controller_not_the_baseline(tmp_pa
     prediction = metrics["prediction"]
     for episode, held in prediction["persistence"].items():
         assert prediction[episode]["rmse"] == held["rmse"]
+
+
+def test_a_later_job_reuses_the_baselines_runs_and_names_the_job_that_drove_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The physics baseline drives the same runs in every job of a dataset: a job that records
+    nothing takes them from the one that drove them (harness/evaluation/reuse.py), the same
+    metrics and arrays, marked; its own learner's controller is driven; other settings, or
+    ``task.reuse_baseline_runs=false``, drive again."""
+    from harness.evaluation import reuse
+
+    monkeypatch.setattr(reuse, "root", lambda: tmp_path / "tracking")
+    rolling = "data.start_speed_mps=[10,20]"  # drives the baseline can be identified on
+    first = run_main(tmp_path, tmp_path / "a", "learner=edmd", rolling)
+    second = run_main(tmp_path, tmp_path / "b", "learner=elm_edmd", rolling)
+    driven = first["tracking"]["controllers"]["bicycle_mpc"]
+    (label,) = driven
+    reused = second["tracking"]["controllers"]["bicycle_mpc"][label]
+    assert reused.pop("reused_from")["driven_in"] == str(tmp_path / "a")
+    assert reused == driven[label]
+    stem = "tracking_bicycle_mpc_test_episode.npz"
+    assert (tmp_path / "b" / stem).read_bytes() == (tmp_path / "a" / stem).read_bytes()
+    assert "reused_from" not in second["tracking"]["controllers"]["de_mpc"][label]
+    other = run_main(
+        tmp_path,
+        tmp_path / "c",
+        "learner=edmd",
+        rolling,
+        "task.extra_controllers.bicycle_mpc.R=50.0",
+    )
+    off = run_main(
+        tmp_path, tmp_path / "d", "learner=edmd", rolling, "task.reuse_baseline_runs=false"
+    )
+    for metrics in (other, off):
+        assert "reused_from" not in metrics["tracking"]["controllers"]["bicycle_mpc"][label]

@@ -43,6 +43,7 @@ NEUTRAL = frozenset(
     {
         "recorder",
         "threads",
+        "task.reuse_baseline_runs",
         "data.root",
         "data.workers",
         "learner.training.progress",

@@ -53,14 +53,14 @@ from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, drive_again
-from harness.evaluation import spectrum, step_response, training_report
+from harness.evaluation import reuse, spectrum, step_response, training_report
 from harness.evaluation.prediction import evaluate, robustness
-from harness.evaluation.tracking import track
+from harness.evaluation.tracking import TrackingTrajectory, load_run, track
 from harness.output import save_arrays
 from harness.plant import Sedan
 from harness.recorder import Recorder
 from harness.references import CourseReference, Reference
-from harness.references.course import path_metrics, plot_course, record_course
+from harness.references.course import Course, path_metrics, plot_course, record_course
 from harness.tasks import provenance
 from learners.base import Learner, check_inputs, check_same_learner
 from learners.base import load as load_learner
@@ -97,6 +97,7 @@ class Pipeline:
         references: Mapping[str, Reference] | None = None,
         robustness_repeats: int = 100,
         logs_from_plant: bool = False,
+        reuse_baseline_runs: bool = True,
     ) -> None:
         self.data = data_config(data)
         self.learner, self.learner_name = learner, learner_name
@@ -145,6 +146,11 @@ class Pipeline:
         if not isinstance(logs_from_plant, bool):
             raise ValueError(f"task.logs_from_plant must be true or false (got {logs_from_plant})")
         self.logs_from_plant = logs_from_plant
+        if not isinstance(reuse_baseline_runs, bool):
+            raise ValueError(
+                f"task.reuse_baseline_runs must be true or false (got {reuse_baseline_runs})"
+            )
+        self.reuse_baseline_runs = reuse_baseline_runs
 
     @staticmethod
     def _load(path: str | None, learner: Learner, learner_name: str) -> Learner | None:
@@ -182,7 +188,8 @@ class Pipeline:
         with Phase("prediction") as phase:
             prediction = self._predict(learner, dataset.test, recorder, output_dir)
             sections["prediction"] = prediction
-            done = [f"{len(dataset.test)} test drives open loop"]
+            drives = len(dataset.test)
+            done = [f"{drives} test drive{'s' * (drives != 1)} open loop"]
             if on_plant:
                 prediction["step_response"] = self._step_response(
                     learner, plant, recorder, output_dir
@@ -204,7 +211,9 @@ class Pipeline:
         if not on_plant:
             return sections | self._skipped_on_logs(prediction)
         models = self._controller_models(learner, dataset)
-        tracking = self._track(models, learner, plant, dataset.test, recorder, output_dir)
+        tracking = self._track(
+            models, learner, plant, dataset.test, recorder, output_dir, data_key=dataset.key
+        )
         if tracking is not None:
             sections["tracking"] = tracking
         if self.other_plants:
@@ -344,9 +353,12 @@ class Pipeline:
         recorder: Recorder,
         output_dir: Path,
         prefix: str = "",
+        *,
+        data_key: str,
     ) -> dict[str, Any] | None:
         """Every controller on every reference (each built from the test drives ``episodes``);
-        the first controller's run of the first reference is the top level."""
+        the first controller's run of the first reference is the top level. ``data_key``: the
+        dataset the models were fitted on (a stored baseline run is reused only on the same)."""
         if not self.controllers or not self.references:
             return None
         targets = {
@@ -388,25 +400,21 @@ class Pipeline:
                         continue
                     if twin is not None:
                         driven[twin] = controller_name
-                    controller = make_controller(model, plant.dt)
                     rollout = f"{prefix}tracking/{controller_name}/{label}"
-                    metrics, run = track(
+                    metrics, run = self._drive(
                         plant,
-                        controller,
+                        make_controller,
+                        model,
                         reference,
-                        name=rollout,
+                        rollout=rollout,
                         recorder=recorder,
                         figure_path=output_dir / f"{stem}.png",
                         arrays_path=output_dir / f"{stem}.npz",
                         tab_priority=2 if name in courses else 1,  # the recording opens on a course
-                        path=centre_lines.get(name),
-                        compute_delay=make_controller.compute_delay,
+                        course=courses.get(name),
+                        data_key=data_key,
                     )
                     if name in courses:
-                        metrics["path"] = {
-                            **path_metrics(courses[name], run.poses, run.states),
-                            "reference_speed_mps": float(reference[0, 0]),
-                        }
                         record_course(recorder, rollout, courses[name])
                         paths[name][controller_name] = run.poses
                         log.debug(
@@ -435,6 +443,66 @@ class Pipeline:
             "references": first,
             "controllers": by_controller,
         }
+
+    def _drive(
+        self,
+        plant: Sedan,
+        make: ControllerFactory,
+        model: Model,
+        reference: np.ndarray,
+        *,
+        rollout: str,
+        recorder: Recorder,
+        figure_path: Path,
+        arrays_path: Path,
+        tab_priority: int,
+        course: Course | None,
+        data_key: str,
+    ) -> tuple[dict[str, Any], TrackingTrajectory]:
+        """One closed loop of ``make``'s controller on ``model``; for a controller with its own
+        model (the physics baseline) in a job that records nothing, the run another job drove
+        with the same code, plant, data and settings (``harness/evaluation/reuse.py``)."""
+        path = course.path() if course is not None else None
+        key = None
+        own = isinstance(make, OwnModelFactory)
+        if own and self.reuse_baseline_runs and type(recorder) is Recorder:
+            parts = {
+                "plant": repr(plant.params),
+                "dt": plant.dt,
+                "data": data_key,
+                "model": [type(model).__name__, getattr(model, "hyperparameters", None)],
+                "controller": repr(make),
+                "course": {k: v.tolist() for k, v in course.as_arrays().items()}
+                if course
+                else None,
+            }
+            key = reuse.run_key(parts, reference)
+            stored = reuse.load(key)
+            if stored is not None:
+                reuse.copy_out(key, arrays_path, figure_path)
+                reused = {"key": key, "driven_in": stored["driven_in"]}
+                return {**stored["metrics"], "reused_from": reused}, load_run(arrays_path)
+        metrics, run = track(
+            plant,
+            make(model, plant.dt),
+            reference,
+            name=rollout,
+            recorder=recorder,
+            figure_path=figure_path,
+            arrays_path=arrays_path,
+            tab_priority=tab_priority,
+            path=path,
+            compute_delay=make.compute_delay,
+        )
+        if course is not None:
+            metrics["path"] = {
+                **path_metrics(course, run.poses, run.states),
+                "reference_speed_mps": float(reference[0, 0]),
+            }
+        if key is not None:
+            driven = {"metrics": metrics, "driven_in": str(arrays_path.parent)}
+            reuse.store(key, driven, arrays_path, figure_path)
+        return metrics, run
 
     def _step_response(
         self, learner: Learner, plant: Sedan, recorder: Recorder, output_dir: Path
@@ -514,7 +582,9 @@ class Pipeline:
         directory.mkdir(parents=True, exist_ok=True)
         prefix = f"generalization/{name}/"
         result = {"prediction": self._predict(learner, episodes, recorder, directory, prefix)}
-        tracking = self._track(models, learner, plant, episodes, recorder, directory, prefix)
+        tracking = self._track(
+            models, learner, plant, episodes, recorder, directory, prefix, data_key=dataset.key
+        )
         if tracking is not None:
             result["tracking"] = tracking
         return result
