@@ -1,16 +1,17 @@
 """The main job end to end, this checkout against another commit, idle and beside a busy core.
 
 ``python -m bench.main_job [--base 6e92ddf] [--this REV] [--load idle busy] [--repeats 1]
-[-- OVERRIDES]`` runs ``python -m harness recorder=none`` (the default job, no environment
-variables: what ``make run`` runs, less the recording) from this checkout (or a worktree of
-``--this``) and from a worktree of ``--base`` (made under a temporary folder, removed after),
-interleaved, each into its own run directory with the
-dataset cache shared (collected once before any timing). "Busy": one CPU-bound process per core
-but one beside the job. It prints per arm the wall time, ``training.fit_time_s``, this checkout's
-phases (its log's phase lines) and the ratio base / this checkout; and whether the two give the
-same metrics (prediction and tracking RMSE).
+[--data data=paper] [-- OVERRIDES]`` runs ``python -m harness recorder=none`` (the default
+job, no environment variables: what ``make run`` runs, less the recording) from this checkout
+(or a worktree of ``--this``) and from a worktree of ``--base`` (made under a temporary folder,
+removed after), interleaved, each into its own run directory with the dataset cache shared
+(collected once before any timing). "Busy": one CPU-bound process per core but one beside the
+job. It prints per arm the wall time, ``training.fit_time_s``, this checkout's phases (its log's
+phase lines) and the ratio base / this checkout; and whether the two give the same metrics
+(prediction and tracking RMSE).
 
-Overrides after ``--`` go to both (``-- learner=dnn`` or a shorter ``learner.training.max_steps``).
+Overrides after ``--`` go to both (``-- learner=dnn``, or ``--data data=paper -- experiment=paper
+learner=edmd`` for a paper-scale job).
 """
 
 from __future__ import annotations
@@ -78,6 +79,12 @@ def main() -> None:
     parser.add_argument("--this", help="a commit to run instead of this checkout's working tree")
     parser.add_argument("--load", nargs="+", default=["idle", "busy"], choices=["idle", "busy"])
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument(
+        "--data",
+        nargs="*",
+        help="overrides that choose the data, collected before any timing (default: the "
+        "overrides that start with 'data'; experiment=paper needs --data data=paper)",
+    )
     parser.add_argument("overrides", nargs="*", help="after --: overrides for both jobs")
     args = parser.parse_args()
     cores = len(os.sched_getaffinity(0))
@@ -98,12 +105,18 @@ def main() -> None:
             cache = Path(tmp) / "cache"
             collect = [sys.executable, "-m", "harness", "task=collect", "recorder=none"]
             env = os.environ | {"KOOPMAN_HARNESS_CACHE": str(cache), "PYTHONPATH": str(REPO_ROOT)}
-            subprocess.run(
-                [*collect, f"hydra.run.dir={tmp}/collect", *args.overrides],
+            data = args.data
+            if data is None:
+                data = [o for o in args.overrides if o.startswith("data")]
+            done = subprocess.run(
+                [*collect, f"hydra.run.dir={tmp}/collect", *data],
                 env=env,
-                check=True,
                 capture_output=True,
+                text=True,
+                check=False,
             )
+            if done.returncode != 0:
+                raise SystemExit(f"collecting the data failed: {done.stderr[-2000:]}")
             results: dict[tuple[str, str], dict] = {}
             for k in range(args.repeats):
                 for load in args.load:
