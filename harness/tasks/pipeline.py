@@ -677,11 +677,15 @@ def tracking_done(runs: Mapping[str, Mapping[str, Any]]) -> str:
     done = []
     for label, metrics in runs.items():
         course = metrics.get("path")
-        if course is None:
-            done.append(label)
-        else:
+        line = label
+        if course is not None:
             verdict = "passed" if course.get("passed") else "FAILED"
-            done.append(f"{label} {verdict} ({course.get('cones_hit', 0)} cones)")
+            line += f" {verdict} ({course.get('cones_hit', 0)} cones)"
+        if "same_run_as" in metrics:
+            line += f" [{metrics['same_run_as']}'s run]"
+        if "reused_from" in metrics:
+            line += f" [reused from {metrics['reused_from']['driven_in']}]"
+        done.append(line)
     return ", ".join(done)
 
 
