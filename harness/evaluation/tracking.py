@@ -157,7 +157,7 @@ def track(
     metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
     metrics["compute_delay"] = compute_delay
-    _record(recorder, name, run, plant.dt, tab_priority)
+    record_run(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)
     if arrays_path is not None:
@@ -221,9 +221,10 @@ def _statistics(times_ms: np.ndarray) -> dict[str, float]:
     }
 
 
-def _record(
+def record_run(
     recorder: Recorder, name: str, run: TrackingTrajectory, dt: float, priority: int
 ) -> None:
+    """A tracking run in the recording under ``name`` (what :func:`track` records of it)."""
     poses = run.poses if np.all(np.isfinite(run.poses)) else None
     solve_ms = np.append(run.solve_time_s, np.nan) * 1e3
     horizon = run.predicted.shape[1]

@@ -38,6 +38,7 @@ import logging
 import math
 import shutil
 import time
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, cast
@@ -55,7 +56,7 @@ from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, drive_again
 from harness.evaluation import reuse, spectrum, step_response, training_report
 from harness.evaluation.prediction import evaluate, robustness
-from harness.evaluation.tracking import TrackingTrajectory, load_run, track
+from harness.evaluation.tracking import TrackingTrajectory, load_run, record_run, track
 from harness.output import save_arrays
 from harness.plant import Sedan
 from harness.recorder import Recorder
@@ -373,8 +374,15 @@ class Pipeline:
         centre_lines = {name: course.path() for name, course in courses.items()}
         paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
         by_controller: dict[str, dict[str, Any]] = {}
-        # (reference, model, settings without a path) -> the controller that drove it first
-        driven: dict[tuple[str, int, str], str] = {}
+        # (reference, model, settings without a path) -> the controller that drove it first;
+        # kept only where a later controller is its twin (a run holds its predicted horizons)
+        twins = Counter(
+            _twin_key(name, model, self.controllers[c], centre_lines.get(name))
+            for c, model in models.items()
+            if not isinstance(model, str)
+            for name in targets
+        )
+        driven: dict[tuple[str, int, str], tuple[str, TrackingTrajectory]] = {}
         for controller_name, make_controller in self.controllers.items():
             model = models[controller_name]
             if isinstance(model, str):
@@ -387,8 +395,9 @@ class Pipeline:
                 for name, (label, reference) in targets.items():
                     stem = f"tracking_{controller_name}_{name}"
                     twin = _twin_key(name, model, make_controller, centre_lines.get(name))
+                    rollout = f"{prefix}tracking/{controller_name}/{label}"
                     if twin in driven:  # the same run, bit for bit: copied, not driven again
-                        twin_name = driven[twin]
+                        twin_name, twin_run = driven[twin]
                         runs[label] = {
                             **by_controller[twin_name][label],
                             "same_run_as": twin_name,
@@ -397,10 +406,8 @@ class Pipeline:
                             source = output_dir / f"tracking_{twin_name}_{name}{suffix}"
                             if source.exists():
                                 shutil.copyfile(source, output_dir / f"{stem}{suffix}")
+                        record_run(recorder, rollout, twin_run, plant.dt, 1)
                         continue
-                    if twin is not None:
-                        driven[twin] = controller_name
-                    rollout = f"{prefix}tracking/{controller_name}/{label}"
                     metrics, run = self._drive(
                         plant,
                         make_controller,
@@ -414,6 +421,8 @@ class Pipeline:
                         course=courses.get(name),
                         data_key=data_key,
                     )
+                    if twin is not None and twins[twin] > 1:
+                        driven[twin] = (controller_name, run)
                     if name in courses:
                         record_course(recorder, rollout, courses[name])
                         paths[name][controller_name] = run.poses
@@ -690,7 +699,7 @@ def tracking_done(runs: Mapping[str, Mapping[str, Any]]) -> str:
 
 
 def _twin_key(
-    reference: str, model: Model, make: ControllerFactory, path: object | None
+    reference: str, model: object, make: ControllerFactory, path: object | None
 ) -> tuple[str, int, str] | None:
     """What makes two controllers' runs of ``reference`` the same run: a reference without a
     path is driven by a path follower as by its state-tracking twin (``without_path``), so the
