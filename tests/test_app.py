@@ -27,10 +27,13 @@ CHARACTERIZE_KEYS = {
 }
 
 
-def run_harness(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
+def run_harness(
+    cwd: Path, *overrides: str, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "harness", *overrides],
         cwd=cwd,
+        env=env,
         capture_output=True,
         text=True,
         timeout=300,
@@ -223,14 +226,7 @@ def test_the_same_seed_gives_the_same_numbers_whatever_the_environments_threads(
         if threads is not None:
             env["OMP_NUM_THREADS"] = threads
         run_dir = tmp_path / f"omp_{threads}"
-        result = subprocess.run(
-            [sys.executable, "-m", "harness", *overrides, f"hydra.run.dir={run_dir}"],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
+        result = run_harness(tmp_path, *overrides, f"hydra.run.dir={run_dir}", env=env)
         assert result.returncode == 0, result.stderr[-2000:]
         metrics = json.loads((run_dir / "metrics.json").read_text())
         tracked = metrics["tracking"]
