@@ -74,6 +74,15 @@ def test_a_wrong_config_value_fails_with_one_line(tmp_path: Path) -> None:
     assert error_lines == ["error: ValueError: plant.tire.road_friction must be > 0 (got -1)"]
 
 
+@pytest.mark.parametrize("value", ["0", "two"])
+def test_a_wrong_thread_count_fails_with_one_line_before_any_work(tmp_path: Path, value) -> None:
+    result = run_harness(tmp_path, f"threads={value}", f"hydra.run.dir={tmp_path}/run")
+    assert result.returncode == 2
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "threads must be an integer >= 1" in errors[0]
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
 def test_an_unknown_plant_is_named_with_the_choices(tmp_path: Path) -> None:
     result = run_harness(tmp_path, "plant=tractor", f"hydra.run.dir={tmp_path}/run")
     assert result.returncode != 0
