@@ -20,7 +20,9 @@
   active_set, piqp, failed);
 - ``horizon``: {Np, Nc}, the lengths of the controller's predicted states and planned inputs;
 - ``compute_delay``: the clock in the loop (``controller.compute_delay``): ``none``, each input
-  applied at the instant of its measurement, or ``one_step``, one control period later.
+  applied at the instant of its measurement, or ``one_step``, one control period later;
+- ``quality``: how smoothly it drove: steering-wheel rate and reversals, throttle-brake changes
+  and time on the brake, jerk and peak lateral acceleration (``harness/evaluation/quality.py``).
 
 The controller is seen only through :class:`~harness.core.contracts.Controller`: every number above
 comes from timing ``act`` and reading the :class:`~harness.core.contracts.StepInfo` it returns.
@@ -57,6 +59,7 @@ from harness.core.contracts import (
     StepInfo,
 )
 from harness.core.reference_path import ReferencePath
+from harness.evaluation.quality import control_quality
 from harness.output import load_arrays, save_arrays, save_figure
 from harness.plant.rollout import Trajectory, closed_loop
 from harness.recorder import Recorder
@@ -157,6 +160,7 @@ def track(
     metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
     metrics["compute_delay"] = compute_delay
+    metrics["quality"] = control_quality(run.states, run.inputs, plant.dt)
     record_run(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)

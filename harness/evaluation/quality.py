@@ -1,0 +1,67 @@
+"""How smoothly a closed loop drove, beside how well it tracked: ``tracking…quality``.
+
+Tracking RMSE and cones do not see a controller that passes by stabbing the brake or sawing at
+the wheel. Each measure here is computed from the run's own samples (period ``dt``); SI units
+but the steering wheel's degrees:
+
+- ``steer_rate_rms_deg_s``, ``steer_rate_peak_deg_s``: the steering-wheel rate, the first
+  difference of the wheel angle over ``dt``;
+- ``steering_reversals_per_min``: sign changes of the steering-wheel rate, counted over the
+  samples where its magnitude exceeds ``STEER_RATE_THRESHOLD_DEG_S`` (slower corrections are
+  no reversal a passenger feels), per minute of the run;
+- ``pedal_changes_per_min``: changes between throttle (pedal > ``PEDAL_DEAD_BAND``) and brake
+  (pedal < -``PEDAL_DEAD_BAND``, in -MPa), the released pedal between them not counted, per
+  minute; ``brake_time_share``: the fraction of samples on the brake;
+- ``long_jerk_rms_mps3``: RMS of d²vx/dt² (second differences); ``lat_jerk_rms_mps3``: RMS of
+  the rate of a_y = dvy/dt + vx·r; ``lat_accel_peak_mps2``: the largest |a_y|.
+
+Ride comfort is judged on such quantities: jerk beyond about 2 m/s³ is felt as uncomfortable in
+road vehicles, and ISO 2631-1 weighs whole-body vibration by frequency, which a steering or
+pedal saw at a few hertz excites (docs/guide/benchmarks.md keeps the measured values).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+STEER_RATE_THRESHOLD_DEG_S = 20.0  # a steering-wheel rate below it is no reversal
+PEDAL_DEAD_BAND = 0.02  # |pedal| below it is released (throttle fraction, or MPa of brake)
+
+
+def reversals(rate: np.ndarray, threshold: float) -> int:
+    """Sign changes of ``rate`` among its samples with |rate| > ``threshold``."""
+    signs = np.sign(rate[np.abs(rate) > threshold])
+    return int(np.count_nonzero(signs[1:] != signs[:-1]))
+
+
+def pedal_changes(pedal: np.ndarray, dead_band: float = PEDAL_DEAD_BAND) -> int:
+    """Changes between throttle and brake, the released pedal between them ignored."""
+    side = np.where(pedal > dead_band, 1, np.where(pedal < -dead_band, -1, 0))
+    pressed = side[side != 0]
+    return int(np.count_nonzero(pressed[1:] != pressed[:-1]))
+
+
+def control_quality(states: np.ndarray, inputs: np.ndarray, dt: float) -> dict[str, float]:
+    """The measures of the module docstring for a run of (T, 3) states (vx, vy, r) and (T, 2)
+    inputs (steering-wheel angle in degrees, pedal) sampled every ``dt`` seconds."""
+    states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
+    minutes = max(len(states) - 1, 1) * dt / 60.0
+    steer_rate = np.diff(inputs[:, 0]) / dt
+    vx, vy, r = states[:, 0], states[:, 1], states[:, 2]
+    lat_accel = np.gradient(vy, dt) + vx * r
+    long_jerk = np.diff(vx, 2) / dt**2
+    lat_jerk = np.diff(lat_accel) / dt
+
+    def rms(values: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(values**2))) if values.size else 0.0
+
+    return {
+        "steer_rate_rms_deg_s": rms(steer_rate),
+        "steer_rate_peak_deg_s": float(np.max(np.abs(steer_rate), initial=0.0)),
+        "steering_reversals_per_min": reversals(steer_rate, STEER_RATE_THRESHOLD_DEG_S) / minutes,
+        "pedal_changes_per_min": pedal_changes(inputs[:, 1]) / minutes,
+        "brake_time_share": float(np.mean(inputs[:, 1] < -PEDAL_DEAD_BAND)),
+        "long_jerk_rms_mps3": rms(long_jerk),
+        "lat_jerk_rms_mps3": rms(lat_jerk),
+        "lat_accel_peak_mps2": float(np.max(np.abs(lat_accel), initial=0.0)),
+    }
