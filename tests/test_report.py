@@ -507,3 +507,13 @@ def test_a_runs_summary_says_per_controller_whether_the_lane_change_passed() -> 
     assert len(lines) == 4
     course["path"]["reached_exit"] = False  # a car that stopped before the cones
     assert "FAILED (never reached the exit), 0.41 m" in summary(metrics).splitlines()[1]
+    # how smoothly it drove, where the run measured it (tracking…quality)
+    course["quality"] = {
+        "steering_reversals_per_min": 583.2,
+        "pedal_changes_per_min": 83.0,
+        "long_jerk_rms_mps3": 4.38,
+    }
+    assert (
+        "2 cones (steering 583 reversals/min, pedal 83 throttle-brake changes/min, jerk 4.4 m/s³),"
+        " 3 deadline misses" in summary(metrics).splitlines()[1]
+    )

@@ -7,7 +7,9 @@ lines say what the file says:
   persistence (the state held) beside it, the bar every model must clear;
 - per controller, the run's first: every course (the lane change): passed or failed, the largest
   lateral deviation from the centre line and the cones hit; every test-drive reference: the
-  tracking RMSE; the step's time on its first reference (median / p99, ms) and deadline misses.
+  tracking RMSE; how smoothly each run drove where its metrics say (``quality``: steering
+  reversals and throttle-brake changes a minute, longitudinal jerk RMS); the step's time on its
+  first reference (median / p99, ms) and deadline misses.
 """
 
 from __future__ import annotations
@@ -78,6 +80,13 @@ def _controller_line(runs: Mapping[str, Any]) -> str:
             )
         else:
             parts.append(f"{label} tracked, RMSE {_rmse(run['rmse'])}")
+        quality = run.get("quality")
+        if quality:
+            parts[-1] += (
+                f" (steering {quality['steering_reversals_per_min']:.0f} reversals/min, pedal "
+                f"{quality['pedal_changes_per_min']:.0f} throttle-brake changes/min, jerk "
+                f"{quality['long_jerk_rms_mps3']:.2g} m/s³)"
+            )
         step = step or run.get("step_time_ms")
         misses = run.get("deadline_misses", 0)
         if misses:
