@@ -15,9 +15,9 @@ but the steering wheel's degrees:
 - ``long_jerk_rms_mps3``: RMS of d²vx/dt² (second differences); ``lat_jerk_rms_mps3``: RMS of
   the rate of a_y = dvy/dt + vx·r; ``lat_accel_peak_mps2``: the largest |a_y|.
 
-Ride comfort is judged on such quantities: jerk beyond about 2 m/s³ is felt as uncomfortable in
-road vehicles, and ISO 2631-1 weighs whole-body vibration by frequency, which a steering or
-pedal saw at a few hertz excites (docs/guide/benchmarks.md keeps the measured values).
+Ride comfort is judged on such quantities: a jerk of about 1-2 m/s³ is the comfort limit
+commonly taken for road vehicles, and ISO 2631-1 weighs whole-body vibration by frequency, which
+a steering or pedal saw at a few hertz excites (docs/guide/control.md keeps the measured values).
 """
 
 from __future__ import annotations
