@@ -60,7 +60,7 @@ from harness.evaluation.tracking import TrackingTrajectory, load_run, record_run
 from harness.output import save_arrays
 from harness.plant import Sedan
 from harness.recorder import Recorder
-from harness.references import CourseReference, Reference
+from harness.references import CourseReference, Reference, ReferencePath
 from harness.references.course import Course, path_metrics, plot_course, record_course
 from harness.tasks import provenance
 from learners.base import Learner, check_inputs, check_same_learner
@@ -376,12 +376,13 @@ class Pipeline:
         by_controller: dict[str, dict[str, Any]] = {}
         # (reference, model, settings without a path) -> the controller that drove it first;
         # kept only where a later controller is its twin (a run holds its predicted horizons)
-        twins = Counter(
-            _twin_key(name, model, self.controllers[c], centre_lines.get(name))
+        twin_keys = {
+            (c, name): _twin_key(name, model, self.controllers[c], centre_lines.get(name))
             for c, model in models.items()
             if not isinstance(model, str)
             for name in targets
-        )
+        }
+        twins = Counter(twin_keys.values())
         driven: dict[tuple[str, int, str], tuple[str, TrackingTrajectory]] = {}
         for controller_name, make_controller in self.controllers.items():
             model = models[controller_name]
@@ -394,7 +395,7 @@ class Pipeline:
             with Phase(f"{prefix}tracking {controller_name}") as phase:
                 for name, (label, reference) in targets.items():
                     stem = f"tracking_{controller_name}_{name}"
-                    twin = _twin_key(name, model, make_controller, centre_lines.get(name))
+                    twin = twin_keys[controller_name, name]
                     rollout = f"{prefix}tracking/{controller_name}/{label}"
                     if twin in driven:  # the same run, bit for bit: copied, not driven again
                         twin_name, twin_run = driven[twin]
@@ -419,6 +420,7 @@ class Pipeline:
                         arrays_path=output_dir / f"{stem}.npz",
                         tab_priority=2 if name in courses else 1,  # the recording opens on a course
                         course=courses.get(name),
+                        path=centre_lines.get(name),
                         data_key=data_key,
                     )
                     if twin is not None and twins[twin] > 1:
@@ -466,12 +468,13 @@ class Pipeline:
         arrays_path: Path,
         tab_priority: int,
         course: Course | None,
+        path: ReferencePath | None,
         data_key: str,
     ) -> tuple[dict[str, Any], TrackingTrajectory]:
         """One closed loop of ``make``'s controller on ``model``; for a controller with its own
         model (the physics baseline) in a job that records nothing, the run another job drove
-        with the same code, plant, data and settings (``harness/evaluation/reuse.py``)."""
-        path = course.path() if course is not None else None
+        with the same code, plant, data and settings (``harness/evaluation/reuse.py``).
+        ``path``: the course's centre line the controller follows (None off a course)."""
         key = None
         own = isinstance(make, OwnModelFactory)
         if own and self.reuse_baseline_runs and type(recorder) is Recorder:
