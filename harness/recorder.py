@@ -49,6 +49,7 @@ __all__ = [
     "CAR_WIDTH_M",
     "FRONT_AXLE_X_M",
     "MAX_VIEWS",
+    "MIN_STATE_SPAN",
     "REAR_AXLE_X_M",
     "WHEEL_RADIUS_M",
     "Recorder",
@@ -62,6 +63,8 @@ log = logging.getLogger(__name__)
 # recording"), 30 tabs (240 views) loaded (synthetic recordings; docs/reliability_run.md). Tabs
 # go in priority order until the next would pass it; every rollout stays in the recording.
 MAX_VIEWS = 200
+# The narrowest y range of a state's plot (SI): what a driver would call a small change of it.
+MIN_STATE_SPAN = {"vx": 2.0, "vy": 0.5, "yaw_rate": 0.2}
 
 # The drawn car: the body the lane change judges against the cones (harness/references/course.py,
 # centred on the pose), a cabin on it, and wheels where harness/plant/mjcf/sedan.xml puts them.
@@ -191,6 +194,18 @@ def _fitted_range(values: np.ndarray, symmetric: bool = False) -> tuple[float, f
     return lo - margin, hi + margin
 
 
+def _state_range(name: str, values: np.ndarray) -> tuple[float, float] | None:
+    """A state plot's y range: the values' (10 % margin), at least ``MIN_STATE_SPAN`` wide about
+    their middle, so that a car holding 80 km/h within 0.1 m/s draws a flat line, not a crisis
+    scaled to fill the plot."""
+    fitted = _fitted_range(values)
+    span = MIN_STATE_SPAN.get(name)
+    if fitted is None or span is None or fitted[1] - fitted[0] >= span:
+        return fitted
+    middle = 0.5 * (fitted[0] + fitted[1])
+    return middle - 0.5 * span, middle + 0.5 * span
+
+
 def _input_plot(name: str, values: np.ndarray) -> tuple[str, tuple[float, float] | None]:
     """Title and y range of an input's plot: the range the input was used over.
 
@@ -251,6 +266,7 @@ class _RolloutInfo:
     on_state_plot: dict[str, list[str]] = field(default_factory=dict)
     has_reference: bool = False
     input_plots: dict[str, tuple[str, tuple[float, float] | None]] = field(default_factory=dict)
+    state_ranges: dict[str, tuple[float, float] | None] = field(default_factory=dict)
     priority: int = 0
     eye_position: tuple[float, float, float] | None = None
     eye_target: tuple[float, float, float] | None = None
@@ -298,7 +314,7 @@ class Recorder:
         poses: np.ndarray | None = None,
         state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
         input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
-        extra: Mapping[str, np.ndarray] | None = None,
+        extra: Mapping[str, np.ndarray | Mapping[str, np.ndarray]] | None = None,
         priority: int = 0,
         reference: np.ndarray | None = None,
         overlays: Mapping[str, np.ndarray] | None = None,
@@ -314,7 +330,8 @@ class Recorder:
             poses: (N, 3) world pose (X [m], Y [m], yaw [rad]), or None.
             state_names: Names of the state columns.
             input_names: Names of the input columns.
-            extra: Further named (N,) or (N, k) series, logged under ``{name}/extra/<key>``.
+            extra: Further named (N,) or (N, k) series, logged under ``{name}/extra/<key>``,
+                one plot each; a mapping of named (N,) columns is one plot of those lines.
             priority: Tabs go in descending priority, then in logged order: a run's result
                 (the closed-loop tracking, the lane change first) is what the recording opens on,
                 and what the layout keeps when it reaches MAX_VIEWS (the drives a run learns
@@ -459,7 +476,7 @@ class RerunRecorder(Recorder):
         poses: np.ndarray | None = None,
         state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
         input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
-        extra: Mapping[str, np.ndarray] | None = None,
+        extra: Mapping[str, np.ndarray | Mapping[str, np.ndarray]] | None = None,
         priority: int = 0,
         reference: np.ndarray | None = None,
         overlays: Mapping[str, np.ndarray] | None = None,
@@ -482,7 +499,15 @@ class RerunRecorder(Recorder):
         x = _as_matrix("states", states, n, len(state_names))
         u = _as_matrix("inputs", inputs, n, len(input_names))
         pose = None if poses is None else _as_matrix("poses", poses, n, 3)
-        extras = {str(k): _as_matrix(f"extra[{k!r}]", v, n, None) for k, v in (extra or {}).items()}
+        extras: dict[str, np.ndarray] = {}
+        extra_lines: dict[str, list[str]] = {}
+        for k, v in (extra or {}).items():
+            if isinstance(v, Mapping):  # named columns on one plot
+                extra_lines[str(k)] = [str(c) for c in v]
+                columns = [_as_matrix(f"extra[{k!r}][{c!r}]", v[c], n, 1) for c in v]
+                extras[str(k)] = np.hstack(columns) if columns else np.zeros((n, 0))
+            else:
+                extras[str(k)] = _as_matrix(f"extra[{k!r}]", v, n, None)
         ns = len(state_names)
         ref = None if reference is None else _as_matrix("reference", reference, n, ns)
         over = {
@@ -523,13 +548,14 @@ class RerunRecorder(Recorder):
             )
         for j, (key, v) in enumerate(extras.items()):
             k = v.shape[1]
-            names = [key] if k == 1 else [f"{key}[{c}]" for c in range(k)]
+            names = extra_lines.get(key) or ([key] if k == 1 else [f"{key}[{c}]" for c in range(k)])
             colors = [_color(_EXTRA_OFFSET + j + c) for c in range(k)]
             self._send_scalars(_child(root, "extra", key), index, v, names, colors)
         if pose is not None:
             steer = u[:, input_names.index(_STEER)] if _STEER in input_names else None
             self._log_car(root, index, pose, steer)
 
+        drawn = [x, *([] if ref is None else [ref]), *over.values()]  # on the state plots
         self._rollouts.append(
             _RolloutInfo(
                 name=name,
@@ -541,6 +567,10 @@ class RerunRecorder(Recorder):
                 on_state_plot=on_plot,
                 has_reference=ref is not None,
                 input_plots={s: _input_plot(s, u[:, i]) for i, s in enumerate(input_names)},
+                state_ranges={
+                    s: _state_range(s, np.concatenate([a[:, i] for a in drawn]))
+                    for i, s in enumerate(state_names)
+                },
                 priority=priority,
                 **({} if pose is None else _chase_eye(pose)),
             )
@@ -748,6 +778,7 @@ class RerunRecorder(Recorder):
                     contents=[_child(r.root, "state", s), *r.on_state_plot.get(s, [])],
                     name=_title(s),
                     axis_x=link,
+                    axis_y=rrb.ScalarAxis(range=r.state_ranges.get(s)),
                     plot_legend=legend,
                 )
                 for s in r.states

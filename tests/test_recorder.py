@@ -19,6 +19,7 @@ from harness.recorder import (
     CAR_WIDTH_M,
     FRONT_AXLE_X_M,
     MAX_VIEWS,
+    MIN_STATE_SPAN,
     REAR_AXLE_X_M,
     WHEEL_RADIUS_M,
     Recorder,
@@ -624,6 +625,39 @@ def test_the_default_view_plots_each_state_against_its_reference(
             todo.append(f"/{child}")
     wanted = [f"{root}/state/{s}" for s in STATES] + [f"{root}/error", f"{root}/input/pedal"]
     assert {views[o]["entity"] for o in wanted} <= in_tab
+
+
+def test_a_steady_state_draws_flat_and_a_quality_panel_names_its_lines(tmp_path: Path) -> None:
+    """Holding 80 km/h within 0.05 m/s is drawn on a plot at least MIN_STATE_SPAN wide (a flat
+    line, not a crisis filling the plot); a state that moves keeps the range it moved over. An
+    extra given as named columns is one plot whose lines carry those names."""
+    d = _rollout_data(200)
+    states = d["states"].copy()
+    states[:, 0] = 22.2 + 0.05 * np.sin(d["time_s"] * 6.0)
+    states[:, 1] = np.linspace(-2.0, 2.0, 200)
+    reference = np.tile([22.2, 0.0, 0.0], (200, 1))
+    jerk = {"longitudinal": np.ones(200), "lateral": -np.ones(200)}
+    path = tmp_path / "steady.rrd"
+    with RerunRecorder(path) as rec:
+        rec.rollout(
+            "steady",
+            d["time_s"],
+            states,
+            d["inputs"],
+            reference=reference,
+            extra={"jerk_mps3": jerk},
+        )
+    views = {v["origin"]: v for v in _views(path)}
+    low, high = views["/steady/state/vx"]["y_range"]
+    assert high - low == pytest.approx(MIN_STATE_SPAN["vx"])
+    assert low < 22.15 and high > 22.25
+    vy_low, vy_high = views["/steady/state/vy"]["y_range"]
+    assert vy_low < -2.0 and vy_high > 2.0 and vy_high - vy_low < 5.0  # the data's, 10 % margin
+    assert _static(_chunks(path), "/steady/extra/jerk_mps3", "SeriesLines:names") == [
+        "longitudinal",
+        "lateral",
+    ]
+    assert views["/steady/extra/jerk_mps3"]["kind"] == "TimeSeries"
 
 
 def test_a_bad_reference_or_overlay_is_refused_before_anything_is_logged(tmp_path: Path) -> None:

@@ -154,8 +154,14 @@ def test_a_tracking_run_reports_records_and_plots(tmp_path: Path, monkeypatch) -
     logged = recorder.rollouts["dlc"]
     assert logged["states"].shape == (300, 3)
     np.testing.assert_array_equal(logged["reference"], reference)
-    assert set(logged["extra"]) == {"solve_time_ms"}
-    ahead = logged["overlays"]["predicted_10_ahead"]
+    # Beside the inputs, the quality panel: the steering-wheel rate and both jerks.
+    assert set(logged["extra"]) == {"solve_time_ms", "steering_wheel_rate_deg_s", "jerk_mps3"}
+    np.testing.assert_allclose(
+        logged["extra"]["steering_wheel_rate_deg_s"][1:], np.diff(run.inputs[:, 0]) / 0.01
+    )
+    assert set(logged["extra"]["jerk_mps3"]) == {"longitudinal", "lateral"}
+    # The prediction's legend says what it is: the model's, made one horizon (0.10 s) earlier.
+    ahead = logged["overlays"]["model's prediction from 0.10 s before"]
     assert np.all(np.isnan(ahead[:10]))
     np.testing.assert_array_equal(ahead[10:], run.predicted[:-10, -1])
     horizon = next(v for p, _, v in recorder.series_calls if p == "dlc/horizon/vy")["ahead"]

@@ -41,16 +41,40 @@ def pedal_changes(pedal: np.ndarray, dead_band: float = PEDAL_DEAD_BAND) -> int:
     return int(np.count_nonzero(pressed[1:] != pressed[:-1]))
 
 
+def _rates(
+    states: np.ndarray, inputs: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Steering-wheel rate (T-1), lateral acceleration (T), longitudinal jerk (T-2) and
+    lateral jerk (T-1), each as the module docstring defines it."""
+    steer_rate = np.diff(inputs[:, 0]) / dt
+    vx, vy, r = states[:, 0], states[:, 1], states[:, 2]
+    lat_accel = np.gradient(vy, dt) + vx * r if len(vy) > 1 else vx * r
+    return steer_rate, lat_accel, np.diff(vx, 2) / dt**2, np.diff(lat_accel) / dt
+
+
+def quality_series(
+    states: np.ndarray, inputs: np.ndarray, dt: float
+) -> dict[str, np.ndarray | dict[str, np.ndarray]]:
+    """The recording's quality panel: the steering-wheel rate (deg/s) and the two jerks (m/s³)
+    at every sample (the differences put at their later sample, NaN where there is none)."""
+    states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
+    steer_rate, _, long_jerk, lat_jerk = _rates(states, inputs, dt)
+
+    def padded(values: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.full(len(states) - len(values), np.nan), values])
+
+    return {
+        "steering_wheel_rate_deg_s": padded(steer_rate),
+        "jerk_mps3": {"longitudinal": padded(long_jerk), "lateral": padded(lat_jerk)},
+    }
+
+
 def control_quality(states: np.ndarray, inputs: np.ndarray, dt: float) -> dict[str, float]:
     """The measures of the module docstring for a run of (T, 3) states (vx, vy, r) and (T, 2)
     inputs (steering-wheel angle in degrees, pedal) sampled every ``dt`` seconds."""
     states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
     minutes = max(len(states) - 1, 1) * dt / 60.0
-    steer_rate = np.diff(inputs[:, 0]) / dt
-    vx, vy, r = states[:, 0], states[:, 1], states[:, 2]
-    lat_accel = np.gradient(vy, dt) + vx * r
-    long_jerk = np.diff(vx, 2) / dt**2
-    lat_jerk = np.diff(lat_accel) / dt
+    steer_rate, lat_accel, long_jerk, lat_jerk = _rates(states, inputs, dt)
 
     def rms(values: np.ndarray) -> float:
         return float(np.sqrt(np.mean(values**2))) if values.size else 0.0

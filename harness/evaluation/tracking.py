@@ -59,7 +59,7 @@ from harness.core.contracts import (
     StepInfo,
 )
 from harness.core.reference_path import ReferencePath
-from harness.evaluation.quality import control_quality
+from harness.evaluation.quality import control_quality, quality_series
 from harness.output import load_arrays, save_arrays, save_figure
 from harness.plant.rollout import Trajectory, closed_loop
 from harness.recorder import Recorder
@@ -237,14 +237,14 @@ def record_run(
         # The prediction Np steps ahead, drawn at the time it is a prediction of.
         ahead = np.full_like(run.states, np.nan)
         ahead[horizon:] = run.predicted[: max(len(ahead) - horizon, 0), -1]
-        overlays[f"predicted_{horizon}_ahead"] = ahead
+        overlays[f"model's prediction from {horizon * dt:.2f} s before"] = ahead
     recorder.rollout(
         name,
         run.time_s,
         run.states,
         run.inputs,
         poses,
-        extra={"solve_time_ms": solve_ms},
+        extra={"solve_time_ms": solve_ms, **quality_series(run.states, run.inputs, dt)},
         priority=priority,
         reference=run.reference,
         overlays=overlays,

@@ -1,0 +1,219 @@
+"""How smoothly the main job's controller drives each learned model, one factor changed at a time.
+
+``python -m bench.control_quality --arm NAME [overrides...] --learners deep_edmd,dnn,input_edmd
+--seeds 0,1,2 --jsonl FILE`` composes the main job as ``python -m harness`` would (``conf/``,
+``data=default``), fits each learner once per seed (kept in ``~/.cache/koopman-harness/bench/``,
+so that every arm drives the same models), then drives the main controller and the physics
+baseline beside it (``bicycle_mpc_path_long_offset_free``, identified from the same drives)
+through the job's references: the test drive and the 80 km/h lane change. The overrides are
+Hydra's and apply to the main controller (``controller.R=[5000,50]``); ``--both`` applies each
+``controller.`` override to the baseline too, so that a change meant for every controller is
+judged against the baseline it would give.
+
+Each row (``--jsonl`` appends it; ``--table FILE`` prints a file's rows, averaged over seeds):
+the lane change's verdict (max deviation m, cones), the tracking RMSE (vx m/s, yaw rate rad/s),
+and ``tracking…quality``: steering reversals per minute, throttle-brake changes (a count, the
+per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
+each with its ratio to the baseline's in the same arm. docs/guide/control.md, "Why it drove
+roughly", ran on this. Run arms two at a time on two cores (one thread each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MAIN = "main"
+BASELINE = "baseline"
+BASELINE_CONFIG = "bicycle_mpc_path_long_offset_free"
+MODELS = Path(os.path.expanduser("~/.cache/koopman-harness/bench/control_quality"))
+COLUMNS = ("reversals", "pedal_changes", "long_jerk", "steer_rate")
+
+
+def _compose(learner: str, seed: int, overrides: Sequence[str], both: bool) -> Any:
+    from hydra import compose, initialize_config_module
+
+    from harness.config import register_configs
+
+    register_configs()
+    baseline = [
+        f"+task.extra_controllers.{BASELINE_CONFIG}.{o.removeprefix('controller.')}"
+        if o.startswith("controller.")
+        else o
+        for o in overrides
+        if both and o.startswith("controller.")
+    ]
+    with initialize_config_module("conf", version_base=None):
+        cfg = compose(
+            "config",
+            overrides=[
+                f"learner={learner}",
+                f"seed={seed}",
+                "recorder=none",
+                f"task.learner_name={learner}",  # Hydra's runtime choices, unset without a run
+                "task.controller_name=main",
+                *overrides,
+            ],
+        )
+    for override in baseline:  # the baseline's block holds every DE-MPC key: set, not added
+        key, value = override.removeprefix("+").split("=", 1)
+        from omegaconf import OmegaConf
+
+        OmegaConf.update(cfg, key, OmegaConf.create({"v": _yaml(value)})["v"], merge=False)
+    return cfg
+
+
+def _yaml(text: str) -> Any:
+    import yaml
+
+    return yaml.safe_load(text)
+
+
+def _fitted(cfg: Any, pipeline: Any, dataset: Any, learner: str, seed: int) -> Any:
+    """The learner fitted on the dataset's training drives, once per (learner, seed, data)."""
+    from learners.base import load
+
+    path = MODELS / f"{learner}_seed{seed}_{dataset.key}.pt"
+    if path.exists():
+        return load(path)
+    fitted = pipeline.learner.fit(dataset.train, dataset.validation, dataset.normalizer)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fitted.save(path, {})
+    return fitted
+
+
+def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: bool) -> list[dict]:
+    from hydra.utils import instantiate
+
+    from harness.core.threads import use_threads
+    from harness.data.collect import data_config
+    from harness.data.driver import DriverKnowledge
+    from harness.data.store import DataConfig, collect_counted, load
+    from harness.recorder import Recorder
+
+    use_threads(1)
+    cfg = _compose(learner, seed, overrides, both)
+    plant = instantiate(cfg.plant)
+    pipeline = instantiate(cfg.task)
+    pipeline.controllers = {
+        MAIN: next(iter(pipeline.controllers.values())),  # the run's controller comes first
+        BASELINE: pipeline.controllers[BASELINE_CONFIG],
+    }
+    data = data_config(cfg.data)
+    if not isinstance(data, DataConfig):
+        raise ValueError("bench.control_quality drives the sedan: data= must be a preset, not logs")
+    directory, _ = collect_counted(plant, data, DriverKnowledge.of(plant.params), progress=False)
+    dataset = load(directory)
+    model = _fitted(cfg, pipeline, dataset, learner, seed)
+    models = pipeline._controller_models(model, dataset)
+    pipeline.reuse_baseline_runs = False
+    with tempfile.TemporaryDirectory() as output:
+        tracking = pipeline._track(
+            models, model, plant, dataset.test, Recorder(), Path(output), data_key=dataset.key
+        )
+    assert tracking is not None
+    rows = []
+    for controller, references in tracking["controllers"].items():
+        for reference, metrics in references.items():
+            quality, path = metrics["quality"], metrics.get("path") or {}
+            rows.append(
+                {
+                    "arm": arm,
+                    "overrides": list(overrides),
+                    "both": both,
+                    "learner": learner,
+                    "seed": seed,
+                    "controller": controller,
+                    "reference": reference,
+                    "max_deviation_m": path.get("max_lateral_deviation_m"),
+                    "cones": path.get("cones_hit"),
+                    "rmse_vx": metrics["rmse"]["vx"],
+                    "rmse_yaw_rate": metrics["rmse"]["yaw_rate"],
+                    "reversals": quality["steering_reversals_per_min"],
+                    "pedal_changes": quality["pedal_changes_per_min"],
+                    "long_jerk": quality["long_jerk_rms_mps3"],
+                    "steer_rate": quality["steer_rate_rms_deg_s"],
+                    "step_ms_p99": metrics["step_time_ms"]["p99"],
+                }
+            )
+    return rows
+
+
+def mean(key: str, rows: Sequence[dict]) -> float:
+    """The mean of ``key`` over ``rows`` where it is known (NaN where it never is)."""
+    values = [r[key] for r in rows if r[key] is not None]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def table(rows: Sequence[dict]) -> str:
+    """Per arm, learner and reference: the mean over seeds, and the ratio to the baseline's."""
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for row in rows:
+        key = (row["arm"], row["learner"], row["reference"], row["controller"])
+        groups[key].append(row)
+    lines = [
+        "| arm | model | reference | seeds | max dev m · cones | vx / r RMSE | reversals /min "
+        "(× baseline) | throttle-brake /min (baseline) | long. jerk m/s³ (× baseline) | "
+        "wheel rate deg/s | step p99 ms |",
+        "|" + "---|" * 11,
+    ]
+    for (arm, learner, reference, controller), members in groups.items():
+        if controller != MAIN:
+            continue
+        base = groups.get((arm, learner, reference, BASELINE), [])
+
+        def ratio(key: str, members: Sequence[dict] = members, base: Sequence[dict] = base) -> str:
+            value, bar = mean(key, members), mean(key, base)
+            return f"{value:.2f} (×{value / bar:.1f})" if bar > 0 else f"{value:.2f}"
+
+        verdict = (
+            f"{mean('max_deviation_m', members):.2f} · {mean('cones', members):.1f}"
+            if members[0]["cones"] is not None
+            else "-"
+        )
+        lines.append(
+            f"| {arm} | {learner} | {reference} | {len(members)} | {verdict} | "
+            f"{mean('rmse_vx', members):.3f} / {mean('rmse_yaw_rate', members):.4f} | "
+            f"{ratio('reversals')} | {mean('pedal_changes', members):.1f} "
+            f"({mean('pedal_changes', base):.1f}) | {ratio('long_jerk')} | "
+            f"{mean('steer_rate', members):.1f} | {mean('step_ms_p99', members):.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--arm", default="today")
+    parser.add_argument("--learners", default="deep_edmd,dnn,input_edmd")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--both", action="store_true", help="apply to the baseline too")
+    parser.add_argument("--jsonl", type=Path)
+    parser.add_argument("--table", type=Path, help="print a file's rows and stop")
+    args, overrides = parser.parse_known_args(argv)
+    if args.table is not None:
+        rows = [json.loads(line) for line in args.table.read_text().splitlines() if line]
+        print(table(rows))
+        return
+    rows = []
+    for learner in args.learners.split(","):
+        for seed in (int(s) for s in args.seeds.split(",")):
+            got = run_arm(args.arm, overrides, learner, seed, args.both)
+            rows += got
+            if args.jsonl is not None:
+                with args.jsonl.open("a") as file:
+                    file.writelines(json.dumps(row) + "\n" for row in got)
+            print(table(got), file=sys.stderr, flush=True)
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()
