@@ -353,6 +353,9 @@ class DEMPC:
                     self.linearization, spans, settings["v_min"], settings["v_max"]
                 )
         self.C = C
+        # The increment bounds in physical units (deg, pedal units) per step: the QP's dv_max
+        # (its slack lets an increment past them, at a cost).
+        self.increment_limits = np.asarray(self.normalizer.inputs_inverse(origin + dv_max), float)
         self._pedal_zero = float(origin[PEDAL])  # the released pedal, normalized
         vx_min = float(self.normalizer.state_min[0])
         vx_span = max(float(self.normalizer.state_max[0]) - vx_min, 1e-9)

@@ -2,15 +2,24 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
+from controllers import DEMPC, DEMPCConfig
+from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
 from harness.evaluation.quality import control_quality, pedal_changes
+from harness.evaluation.tracking import track
+from harness.recorder import Recorder
+from tests.toy_models import ModelPlant, toy_linear_model
 
 DT = 0.01
 
 
-def run(seconds: float, steer=None, pedal=None, vx=None, vy=None, r=None):
+def run(seconds: float, steer=None, pedal=None, vx=None, vy=None, r=None) -> tuple[Any, Any]:
+    """(states, inputs) sampled every DT for ``seconds``: the given functions of t, else
+    straight ahead at 20 m/s with the pedal released."""
     t = np.arange(round(seconds / DT) + 1) * DT
     zeros = np.zeros_like(t)
     states = np.c_[vx(t) if vx else zeros + 20.0, vy(t) if vy else zeros, r(t) if r else zeros]
@@ -59,3 +68,43 @@ def test_a_steady_circle_has_its_centripetal_acceleration_and_no_lateral_jerk() 
     assert quality["lat_accel_peak_mps2"] == pytest.approx(vx * rate)
     assert quality["lat_jerk_rms_mps3"] == pytest.approx(0.0, abs=1e-9)
     assert quality["steering_reversals_per_min"] == 0 and quality["pedal_changes_per_min"] == 0
+
+
+def test_the_share_of_steps_at_the_increment_bound_counts_those_at_it_or_past_it() -> None:
+    # The wheel moves 2.25 deg a step (its bound) for the first quarter, then 1 deg, then holds;
+    # the pedal steps past its bound (the slack) once.
+    steps = np.r_[np.full(100, 2.25), np.full(100, 1.0), np.zeros(200)]
+    steer = np.r_[0.0, np.cumsum(steps)]
+    pedal = np.zeros(401)
+    pedal[200:] = 0.01
+    states = np.tile([20.0, 0.0, 0.0], (401, 1))
+    quality = control_quality(states, np.c_[steer, pedal], DT, np.array([2.25, 0.004]))
+    assert quality["steer_increment_limit_share"] == pytest.approx(0.25)
+    assert quality["pedal_increment_limit_share"] == pytest.approx(1 / 400)
+    assert "steer_increment_limit_share" not in control_quality(states, np.c_[steer, pedal], DT)
+
+
+def test_de_mpc_on_its_exact_model_holds_a_constant_speed_without_touching_the_brake() -> None:
+    """The controller's own model as the plant, a lane-change-like steering at constant speed:
+    the pedal never changes between throttle and brake, nor lives at its increment bound, and
+    the controller reports the bounds it was given."""
+    model = toy_linear_model()
+    plant = ModelPlant(model, x0=np.array([20.0, 0.0, 0.0]))
+    t = np.arange(600) * plant.dt
+    steering = 60.0 * np.sin(2 * np.pi * 0.4 * t) * (t < 2.5)
+    reference = np.array([plant.reset()] + [plant.step(np.array([s, 0.0])) for s in steering[:-1]])
+    config = DEMPCConfig(Np=20, Nc=10, offset_free=True)
+    controller = DEMPC(model, config)
+    # The pedal's one bound is the tighter of the throttle's and the brake's, as shares of range
+    pedal = min(
+        config.throttle_increment / THROTTLE_MAX, config.brake_increment_mpa / BRAKE_MAX_MPA
+    )
+    np.testing.assert_allclose(
+        controller.increment_limits, [config.steer_wheel_increment_deg, pedal * THROTTLE_MAX]
+    )
+    metrics, run = track(plant, controller, reference, name="t", recorder=Recorder())
+    quality = metrics["quality"]
+    assert np.ptp(run.states[:, 0]) < 0.1  # constant speed, as asked
+    assert quality["pedal_changes_per_min"] == 0 and quality["brake_time_share"] == 0
+    assert quality["pedal_increment_limit_share"] == 0
+    assert quality["steer_increment_limit_share"] < 0.05  # a feasible reference: off its bound

@@ -242,6 +242,14 @@ class RealTimeIteration(Protocol):
 
 
 @runtime_checkable
+class RateLimited(Protocol):
+    """A controller whose input increments are bounded: ``increment_limits`` (m,), the largest
+    change of each physical input in one control step (``tracking…quality``'s share at it)."""
+
+    increment_limits: np.ndarray
+
+
+@runtime_checkable
 class Reference(Protocol):
     """A tracking target (``conf/reference/``): its label in the metrics, and its states."""
 

@@ -13,7 +13,10 @@ but the steering wheel's degrees:
   (pedal < -``PEDAL_DEAD_BAND``, in -MPa), the released pedal between them not counted, per
   minute; ``brake_time_share``: the fraction of samples on the brake;
 - ``long_jerk_rms_mps3``: RMS of d²vx/dt² (second differences); ``lat_jerk_rms_mps3``: RMS of
-  the rate of a_y = dvy/dt + vx·r; ``lat_accel_peak_mps2``: the largest |a_y|.
+  the rate of a_y = dvy/dt + vx·r; ``lat_accel_peak_mps2``: the largest |a_y|;
+- ``steer_increment_limit_share``, ``pedal_increment_limit_share``: for a controller that bounds
+  its increments (``RateLimited``), the share of steps whose change of the input is at its bound
+  (within ``AT_LIMIT``) or past it (the slack): a controller that lives there is bang-bang.
 
 Ride comfort is judged on such quantities: a jerk of about 1-2 m/s³ is the comfort limit
 commonly taken for road vehicles, and ISO 2631-1 weighs whole-body vibration by frequency, which
@@ -26,6 +29,7 @@ import numpy as np
 
 STEER_RATE_THRESHOLD_DEG_S = 20.0  # a steering-wheel rate below it is no reversal
 PEDAL_DEAD_BAND = 0.02  # |pedal| below it is released (throttle fraction, or MPa of brake)
+AT_LIMIT = 0.99  # an increment of at least this share of its bound is at the bound
 
 
 def reversals(rate: np.ndarray, threshold: float) -> int:
@@ -69,9 +73,15 @@ def quality_series(
     }
 
 
-def control_quality(states: np.ndarray, inputs: np.ndarray, dt: float) -> dict[str, float]:
+def control_quality(
+    states: np.ndarray,
+    inputs: np.ndarray,
+    dt: float,
+    increment_limits: np.ndarray | None = None,
+) -> dict[str, float]:
     """The measures of the module docstring for a run of (T, 3) states (vx, vy, r) and (T, 2)
-    inputs (steering-wheel angle in degrees, pedal) sampled every ``dt`` seconds."""
+    inputs (steering-wheel angle in degrees, pedal) sampled every ``dt`` seconds;
+    ``increment_limits``: the controller's bound on each input's change per step, if it has one."""
     states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
     minutes = max(len(states) - 1, 1) * dt / 60.0
     steer_rate, lat_accel, long_jerk, lat_jerk = _rates(states, inputs, dt)
@@ -79,7 +89,16 @@ def control_quality(states: np.ndarray, inputs: np.ndarray, dt: float) -> dict[s
     def rms(values: np.ndarray) -> float:
         return float(np.sqrt(np.mean(values**2))) if values.size else 0.0
 
-    return {
+    shares = {}
+    if increment_limits is not None:
+        steps = np.abs(np.diff(inputs, axis=0))
+        at_limit = steps >= AT_LIMIT * np.asarray(increment_limits, dtype=float)
+        share = at_limit.mean(axis=0) if len(steps) else np.zeros(inputs.shape[1])
+        shares = {
+            "steer_increment_limit_share": float(share[0]),
+            "pedal_increment_limit_share": float(share[1]),
+        }
+    return shares | {
         "steer_rate_rms_deg_s": rms(steer_rate),
         "steer_rate_peak_deg_s": float(np.max(np.abs(steer_rate), initial=0.0)),
         "steering_reversals_per_min": reversals(steer_rate, STEER_RATE_THRESHOLD_DEG_S) / minutes,

@@ -55,6 +55,7 @@ from harness.core.contracts import (
     STATE_NAMES,
     Controller,
     Plant,
+    RateLimited,
     RealTimeIteration,
     StepInfo,
 )
@@ -160,7 +161,8 @@ def track(
     metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
     metrics["compute_delay"] = compute_delay
-    metrics["quality"] = control_quality(run.states, run.inputs, plant.dt)
+    limits = controller.increment_limits if isinstance(controller, RateLimited) else None
+    metrics["quality"] = control_quality(run.states, run.inputs, plant.dt, limits)
     record_run(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)
