@@ -353,9 +353,7 @@ class DEMPC:
                     self.linearization, spans, settings["v_min"], settings["v_max"]
                 )
         self.C = C
-        # The increment bounds in physical units (deg, pedal units) per step: the QP's dv_max
-        # (its slack lets an increment past them, at a cost).
-        self.increment_limits = np.asarray(self.normalizer.inputs_inverse(origin + dv_max), float)
+        self._dv_max = dv_max  # normalized: the pedal's is a share of each side's range
         self._pedal_zero = float(origin[PEDAL])  # the released pedal, normalized
         vx_min = float(self.normalizer.state_min[0])
         vx_span = max(float(self.normalizer.state_max[0]) - vx_min, 1e-9)
@@ -433,6 +431,13 @@ class DEMPC:
             self.path_qp.reset()
         for band_qp in self._band_qps.values():
             band_qp.reset()
+
+    def increment_shares(self, inputs: np.ndarray) -> np.ndarray:
+        """(T - 1, m) each step's change of each physical input in ``inputs`` (T, m), as a share
+        of its bound (the QP's, normalized: the pedal's on the throttle's or the brake's side
+        as it moved there); above 1 where the slack let it past."""
+        v = self.normalizer.inputs(np.asarray(inputs, dtype=float))
+        return np.abs(np.diff(v, axis=0)) / self._dv_max
 
     @property
     def follows_path(self) -> bool:

@@ -78,7 +78,8 @@ def test_the_share_of_steps_at_the_increment_bound_counts_those_at_it_or_past_it
     pedal = np.zeros(401)
     pedal[200:] = 0.01
     states = np.tile([20.0, 0.0, 0.0], (401, 1))
-    quality = control_quality(states, np.c_[steer, pedal], DT, np.array([2.25, 0.004]))
+    shares = np.abs(np.diff(np.c_[steer, pedal], axis=0)) / np.array([2.25, 0.004])
+    quality = control_quality(states, np.c_[steer, pedal], DT, shares)
     assert quality["steer_increment_limit_share"] == pytest.approx(0.25)
     assert quality["pedal_increment_limit_share"] == pytest.approx(1 / 400)
     assert "steer_increment_limit_share" not in control_quality(states, np.c_[steer, pedal], DT)
@@ -87,7 +88,7 @@ def test_the_share_of_steps_at_the_increment_bound_counts_those_at_it_or_past_it
 def test_de_mpc_on_its_exact_model_holds_a_constant_speed_without_touching_the_brake() -> None:
     """The controller's own model as the plant, a lane-change-like steering at constant speed:
     the pedal never changes between throttle and brake, nor lives at its increment bound, and
-    the controller reports the bounds it was given."""
+    the controller measures increments against the bounds it was given."""
     model = toy_linear_model()
     plant = ModelPlant(model, x0=np.array([20.0, 0.0, 0.0]))
     t = np.arange(600) * plant.dt
@@ -95,13 +96,15 @@ def test_de_mpc_on_its_exact_model_holds_a_constant_speed_without_touching_the_b
     reference = np.array([plant.reset()] + [plant.step(np.array([s, 0.0])) for s in steering[:-1]])
     config = DEMPCConfig(Np=20, Nc=10, offset_free=True)
     controller = DEMPC(model, config)
-    # The pedal's one bound is the tighter of the throttle's and the brake's, as shares of range
-    pedal = min(
+    # Its bounds per step: the wheel's in degrees; the pedal's a share of each side's range,
+    # the tighter of the throttle's and the brake's, on whichever side it moves.
+    pedal_share = min(
         config.throttle_increment / THROTTLE_MAX, config.brake_increment_mpa / BRAKE_MAX_MPA
     )
-    np.testing.assert_allclose(
-        controller.increment_limits, [config.steer_wheel_increment_deg, pedal * THROTTLE_MAX]
-    )
+    u = np.array([[0.0, 0.0], [config.steer_wheel_increment_deg, -pedal_share * BRAKE_MAX_MPA]])
+    np.testing.assert_allclose(controller.increment_shares(u), [[1.0, 1.0]])
+    u[1, 1] = pedal_share * THROTTLE_MAX / 2
+    np.testing.assert_allclose(controller.increment_shares(u), [[1.0, 0.5]])
     metrics, run = track(plant, controller, reference, name="t", recorder=Recorder())
     quality = metrics["quality"]
     assert np.ptp(run.states[:, 0]) < 0.1  # constant speed, as asked

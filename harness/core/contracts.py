@@ -243,10 +243,11 @@ class RealTimeIteration(Protocol):
 
 @runtime_checkable
 class RateLimited(Protocol):
-    """A controller whose input increments are bounded: ``increment_limits`` (m,), the largest
-    change of each physical input in one control step (``tracking…quality``'s share at it)."""
+    """A controller whose input increments are bounded (``tracking…quality``'s share at it)."""
 
-    increment_limits: np.ndarray
+    def increment_shares(self, inputs: np.ndarray) -> np.ndarray:
+        """(T - 1, m) each step's change of each of ``inputs`` (T, m) as a share of its bound."""
+        ...
 
 
 @runtime_checkable

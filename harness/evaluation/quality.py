@@ -77,11 +77,12 @@ def control_quality(
     states: np.ndarray,
     inputs: np.ndarray,
     dt: float,
-    increment_limits: np.ndarray | None = None,
+    increment_shares: np.ndarray | None = None,
 ) -> dict[str, float]:
     """The measures of the module docstring for a run of (T, 3) states (vx, vy, r) and (T, 2)
     inputs (steering-wheel angle in degrees, pedal) sampled every ``dt`` seconds;
-    ``increment_limits``: the controller's bound on each input's change per step, if it has one."""
+    ``increment_shares``: (T - 1, 2) each step's change of each input as a share of the bound
+    the controller put on it (``RateLimited``), if it has one."""
     states, inputs = np.asarray(states, dtype=float), np.asarray(inputs, dtype=float)
     minutes = max(len(states) - 1, 1) * dt / 60.0
     steer_rate, lat_accel, long_jerk, lat_jerk = _rates(states, inputs, dt)
@@ -90,10 +91,9 @@ def control_quality(
         return float(np.sqrt(np.mean(values**2))) if values.size else 0.0
 
     shares = {}
-    if increment_limits is not None:
-        steps = np.abs(np.diff(inputs, axis=0))
-        at_limit = steps >= AT_LIMIT * np.asarray(increment_limits, dtype=float)
-        share = at_limit.mean(axis=0) if len(steps) else np.zeros(inputs.shape[1])
+    if increment_shares is not None:
+        at_limit = np.asarray(increment_shares, dtype=float) >= AT_LIMIT
+        share = at_limit.mean(axis=0) if len(at_limit) else np.zeros(inputs.shape[1])
         shares = {
             "steer_increment_limit_share": float(share[0]),
             "pedal_increment_limit_share": float(share[1]),

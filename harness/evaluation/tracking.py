@@ -161,8 +161,10 @@ def track(
     metrics["follows_path"] = bool(infos[0].follows_path)
     metrics["horizon"] = {"Np": len(infos[0].predicted_states), "Nc": len(infos[0].planned_inputs)}
     metrics["compute_delay"] = compute_delay
-    limits = controller.increment_limits if isinstance(controller, RateLimited) else None
-    metrics["quality"] = control_quality(run.states, run.inputs, plant.dt, limits)
+    shares = (
+        controller.increment_shares(run.inputs) if isinstance(controller, RateLimited) else None
+    )
+    metrics["quality"] = control_quality(run.states, run.inputs, plant.dt, shares)
     record_run(recorder, name, run, plant.dt, tab_priority)
     if figure_path is not None:
         plot_tracking({name: run}, figure_path)
