@@ -67,7 +67,7 @@ MAX_VIEWS = 200
 MIN_STATE_SPAN = {"vx": 2.0, "vy": 0.5, "yaw_rate": 0.2}
 
 # The drawn car: the body the lane change judges against the cones (harness/references/course.py,
-# centred on the pose), a cabin on it, and wheels where harness/plant/mjcf/sedan.xml puts them.
+# centred on the pose), a cabin on it, and wheels where models/mjcf/sedan.xml puts them.
 CAR_LENGTH_M = 4.6
 CAR_WIDTH_M = 1.8
 CAR_HEIGHT_M = 1.45

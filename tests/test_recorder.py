@@ -220,7 +220,7 @@ def test_the_front_wheels_steer_by_the_road_wheel_angle(
 
 
 def test_the_drawn_wheels_sit_where_the_plant_has_them() -> None:
-    """Axles and tyre radius of the drawing are the MJCF's (harness/plant/mjcf/sedan.xml)."""
+    """Axles and tyre radius of the drawing are the MJCF's (models/mjcf/sedan.xml)."""
     mujoco = pytest.importorskip("mujoco")
     model = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
     assert model.body("corner_fl").pos[0] == pytest.approx(FRONT_AXLE_X_M)

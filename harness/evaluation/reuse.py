@@ -34,7 +34,7 @@ from harness.core.paths import REPO_ROOT
 from harness.core.threads import threads_in_use
 from harness.plant.native import cache_dir
 
-PACKAGES = ("harness", "learners", "controllers")
+PACKAGES = ("harness", "learners", "controllers", "models")  # models: the MJCF the plant loads
 SOURCES = ("*.py", "*.c", "*.h", "*.xml")
 LIBRARIES = ("numpy", "scipy", "mujoco", "daqp", "piqp", "torch")
 FILES = ("metrics.json", "run.npz", "figure.png")

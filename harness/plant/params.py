@@ -170,7 +170,7 @@ class ResistanceParams:
 
 @dataclass
 class ChassisParams:
-    """Masses and the anti-roll bars; geometry and springs live in harness/plant/mjcf/sedan.xml."""
+    """Masses and the anti-roll bars; geometry and springs live in models/mjcf/sedan.xml."""
 
     sprung_mass_kg: float = 1340.0
     payload_kg: float = 0.0

@@ -21,12 +21,13 @@ import mujoco
 import numpy as np
 
 from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
+from harness.core.paths import MJCF_DIR
 from harness.plant import native
 from harness.plant.params import SedanParams
 
 log = logging.getLogger(__name__)
 
-MJCF_PATH: Path = Path(__file__).resolve().parent / "mjcf" / "sedan.xml"  # beside its code
+MJCF_PATH: Path = MJCF_DIR / "sedan.xml"
 CORNERS = ("fl", "fr", "rl", "rr")
 # MuJoCo's instability warnings: a NaN, inf or huge position, velocity or acceleration. MuJoCo
 # then resets the simulation to the model's initial state and carries on (its "autoreset"), so
