@@ -104,7 +104,7 @@ _UNITS = {
     "vy": "m/s",
     "yaw_rate": "rad/s",
     "steer_wheel_deg": "deg",
-    "pedal": "throttle 0..1 / -brake MPa",
+    "pedal": "throttle 0..0.2 / -brake MPa",
 }
 _STATE_OFFSET = 0
 _INPUT_OFFSET = 4
