@@ -81,6 +81,7 @@ LINEARIZATIONS = ("plan", "frozen", "predicted")
 # What the cost follows: the reference's states (the paper's), or a run's path when it has one
 # (lateral and heading error, controllers/path_following.py; state tracking where it has none).
 REFERENCES = ("states", "path")
+OFFSET_FREE_SPACES = ("lifted", "states")  # where the offset-free disturbance acts
 # Path following: the speed in the error kinematics, to this band (m/s): 1 % at 80 km/h.
 SPEED_BAND_MPS = 0.25
 # A band is kept until the speed is this many bands from it (the nearest band's half, 0.5, plus
@@ -155,6 +156,10 @@ class DEMPCConfig:
     # 1 holds the last step's error (the best of 0.02-1 at 10/7, docs/control.md).
     offset_free: bool = False
     offset_free_gain: float = 1.0
+    # Where w acts: ``lifted``, every coordinate of z (the whole one-step error, the encoder's
+    # projection error of the observables too); ``states``, only the states C reads (the error
+    # projected on C's row space): a state disturbance, as an offset-free observer models it.
+    offset_free_space: str = "lifted"
     # The clock in the loop (COMPUTE_DELAYS): none, or one_step, each input applied one control
     # period after its measurement and the state predicted that far before planning.
     compute_delay: str = "none"
@@ -211,6 +216,7 @@ class DEMPCConfig:
         choice(key + "linearization", self.linearization, LINEARIZATIONS)
         choice(key + "qp_solver", self.qp_solver, QP_SOLVERS)
         choice(key + "reference", self.reference, REFERENCES)
+        choice(key + "offset_free_space", self.offset_free_space, OFFSET_FREE_SPACES)
         in_range(key + "offset_free_gain", self.offset_free_gain, 0.0, 1.0, open_low=True)
         self.secant_spans()
         for name in (
@@ -361,6 +367,10 @@ class DEMPC:
         self._release_margin = RELEASE_MARGIN_MPS / vx_span
         self.offset_free = bool(config.offset_free)
         self.offset_free_gain = float(config.offset_free_gain)
+        # The projection of a lifted error on the states (C⁺C), or none: the whole error.
+        self._disturbance_map = (
+            np.linalg.pinv(C) @ C if config.offset_free_space == "states" else None
+        )
         self.delay_steps = COMPUTE_DELAYS[config.compute_delay]
         self.frenet: FrenetOutputs | None = None
         self.path_qp: TimeVaryingQP | None = None
@@ -555,7 +565,10 @@ class DEMPC:
         if not self.offset_free:
             return None
         if self._z_expected is not None:
-            self._disturbance = self._disturbance + self.offset_free_gain * (z - self._z_expected)
+            error = z - self._z_expected
+            if self._disturbance_map is not None:
+                error = self._disturbance_map @ error
+            self._disturbance = self._disturbance + self.offset_free_gain * error
         return self._disturbance
 
     def _model_step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
