@@ -281,8 +281,31 @@ class CondensedQP:
         self._piqp = solver
         self._piqp_ready = False
         self._piqp_new_hessian = False  # a time-varying model's P changes every step
+        self._piqp_bounds_new = False  # set_input_bounds moved the box since PIQP's last solve
+
+    def _piqp_box(self) -> dict[str, np.ndarray]:
+        """PIQP's input box for ``update`` when set_input_bounds moved it, else nothing (an
+        unchanged problem stays bit for bit the one set up)."""
+        if not self._piqp_bounds_new:
+            return {}
+        self._piqp_bounds_new = False
+        return {"x_l": self._piqp_x_l, "x_u": self._piqp_x_u}
 
     # ---- per step ---------------------------------------------------------------------------
+
+    def set_input_bounds(self, v_min: np.ndarray, v_max: np.ndarray) -> None:
+        """This step's hard input bounds (m,) (the pedal kept to one side): only b and PIQP's
+        box move; the Hessian, G and every factor stay."""
+        v_min, v_max = np.asarray(v_min, float), np.asarray(v_max, float)
+        if np.array_equal(v_min, self.v_min) and np.array_equal(v_max, self.v_max):
+            return
+        M = self.m * self.Nc
+        self.v_min, self.v_max = v_min, v_max
+        self._b_upper[2 * M : 3 * M] = np.tile(v_max, self.Nc)
+        self._b_upper[3 * M : 4 * M] = -np.tile(v_min, self.Nc)
+        self._piqp_x_l[:M] = np.tile(v_min, self.Nc)
+        self._piqp_x_u[:M] = np.tile(v_max, self.Nc)
+        self._piqp_bounds_new = True
 
     def reset(self) -> None:
         """Forget the previous active set (a new run starts cold)."""
@@ -564,6 +587,7 @@ class CondensedQP:
         solver = self._piqp
         if not self._piqp_ready:
             _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
+            self._piqp_bounds_new = False
             solver.setup(
                 P=self._P_V,
                 c=c_v,
@@ -576,10 +600,10 @@ class CondensedQP:
             self._piqp_ready = True
         elif self._piqp_new_hessian:
             _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
-            solver.update(P=self._P_V, c=c_v, h_l=h_l, h_u=h_u)
+            solver.update(P=self._P_V, c=c_v, h_l=h_l, h_u=h_u, **self._piqp_box())
         else:
             _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
-            solver.update(c=c_v, h_l=h_l, h_u=h_u)
+            solver.update(c=c_v, h_l=h_l, h_u=h_u, **self._piqp_box())
         self._piqp_new_hessian = False
         status = solver.solve()
         iterations = int(solver.result.info.iter)

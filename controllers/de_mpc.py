@@ -39,6 +39,7 @@ from controllers.blas import single_threaded
 from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
 from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
+from controllers.pedal_sides import PedalSides
 from harness.core.budget import check_memory
 from harness.core.checks import (
     boolean,
@@ -81,7 +82,6 @@ LINEARIZATIONS = ("plan", "frozen", "predicted")
 # What the cost follows: the reference's states (the paper's), or a run's path when it has one
 # (lateral and heading error, controllers/path_following.py; state tracking where it has none).
 REFERENCES = ("states", "path")
-OFFSET_FREE_SPACES = ("lifted", "states")  # where the offset-free disturbance acts
 # Path following: the speed in the error kinematics, to this band (m/s): 1 % at 80 km/h.
 SPEED_BAND_MPS = 0.25
 # A band is kept until the speed is this many bands from it (the nearest band's half, 0.5, plus
@@ -156,10 +156,11 @@ class DEMPCConfig:
     # 1 holds the last step's error (the best of 0.02-1 at 10/7, docs/control.md).
     offset_free: bool = False
     offset_free_gain: float = 1.0
-    # Where w acts: ``lifted``, every coordinate of z (the whole one-step error, the encoder's
-    # projection error of the observables too); ``states``, only the states C reads (the error
-    # projected on C's row space): a state disturbance, as an offset-free observer models it.
-    offset_free_space: str = "lifted"
+    # One side of the pedal at a time (controllers/pedal_sides.py; ours): the plan keeps to
+    # the throttle (and coasting) or to the brake (and releasing) until its best on that side
+    # still misses the reference's speed within the horizon by more than this (m/s); null:
+    # the pedal crosses between them freely (the paper's).
+    pedal_side_margin_mps: float | None = None
     # The clock in the loop (COMPUTE_DELAYS): none, or one_step, each input applied one control
     # period after its measurement and the state predicted that far before planning.
     compute_delay: str = "none"
@@ -216,8 +217,9 @@ class DEMPCConfig:
         choice(key + "linearization", self.linearization, LINEARIZATIONS)
         choice(key + "qp_solver", self.qp_solver, QP_SOLVERS)
         choice(key + "reference", self.reference, REFERENCES)
-        choice(key + "offset_free_space", self.offset_free_space, OFFSET_FREE_SPACES)
         in_range(key + "offset_free_gain", self.offset_free_gain, 0.0, 1.0, open_low=True)
+        if self.pedal_side_margin_mps is not None:
+            positive(key + "pedal_side_margin_mps", self.pedal_side_margin_mps)
         self.secant_spans()
         for name in (
             "rho",
@@ -367,10 +369,10 @@ class DEMPC:
         self._release_margin = RELEASE_MARGIN_MPS / vx_span
         self.offset_free = bool(config.offset_free)
         self.offset_free_gain = float(config.offset_free_gain)
-        # The projection of a lifted error on the states (C⁺C), or none: the whole error.
-        self._disturbance_map = (
-            np.linalg.pinv(C) @ C if config.offset_free_space == "states" else None
-        )
+        self._input_bounds = (settings["v_min"], settings["v_max"])
+        margin = config.pedal_side_margin_mps
+        self.pedal_sides = None if margin is None else PedalSides(margin, self._pedal_zero, vx_span)
+        self._step_bounds: tuple[np.ndarray, np.ndarray] | None = None
         self.delay_steps = COMPUTE_DELAYS[config.compute_delay]
         self.frenet: FrenetOutputs | None = None
         self.path_qp: TimeVaryingQP | None = None
@@ -431,6 +433,8 @@ class DEMPC:
         self._plan: np.ndarray | None = None
         self._plan_step = 0
         self._disturbance = np.zeros(self.C.shape[1])
+        if self.pedal_sides is not None:
+            self.pedal_sides.reset(self._v_prev)
         self._z_expected: np.ndarray | None = None
         self._prepared: _Prepared | None = None
         self._last: _Last | None = None
@@ -448,6 +452,11 @@ class DEMPC:
         as it moved there); above 1 where the slack let it past."""
         v = self.normalizer.inputs(np.asarray(inputs, dtype=float))
         return np.abs(np.diff(v, axis=0)) / self._dv_max
+
+    def _qps(self) -> list[CondensedQP]:
+        """Every QP this controller may solve in a step: states, path, each speed band's."""
+        path = [self.path_qp] if self.path_qp is not None else []
+        return [self.qp, *path, *self._band_qps.values()]
 
     @property
     def follows_path(self) -> bool:
@@ -487,6 +496,10 @@ class DEMPC:
                 raise ValueError("a DE-MPC run that follows a path needs the car's pose in act()")
             qp = self.path_qp
             y_ref, where = self._path_reference(x, pose, y_ref)
+        if self.pedal_sides is not None:
+            self._step_bounds = self.pedal_sides.bounds(*self._input_bounds, v_prev)
+            for each in self._qps():
+                each.set_input_bounds(*self._step_bounds)
         # Small products: one BLAS thread is fastest, for every model (blas.py; the main job's
         # lifted-linear path follower at 60/50: p99 7.8-7.9 ms on two threads, 1.9-4.8 on one).
         with single_threaded():
@@ -525,6 +538,8 @@ class DEMPC:
         else:  # the run's first preparation failed: no model to predict with yet (NaN rows)
             predicted = np.full((self.Np, STATES), np.nan)
         self._predicted_rows = predicted if solution.ok else None
+        if self.pedal_sides is not None and solution.ok:
+            self.pedal_sides.update(predicted[:, 0], self._reference[k + 1 : k + 1 + self.Np, 0])
         if self.delay_steps:  # row i is i + 1 steps after the measurement, with or without delay
             predicted = np.vstack([(self.C @ z)[None], predicted[:-1]])
         info = StepInfo(
@@ -565,10 +580,7 @@ class DEMPC:
         if not self.offset_free:
             return None
         if self._z_expected is not None:
-            error = z - self._z_expected
-            if self._disturbance_map is not None:
-                error = self._disturbance_map @ error
-            self._disturbance = self._disturbance + self.offset_free_gain * error
+            self._disturbance = self._disturbance + self.offset_free_gain * (z - self._z_expected)
         return self._disturbance
 
     def _model_step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -796,6 +808,8 @@ class DEMPC:
         qp = TimeVaryingQP(np.zeros((OUTPUTS, 0)), INPUTS, **self._path_settings)
         qp.set_prediction_matrix(self.frenet.extend_theta(self.qp.theta, band))
         qp.prepare_solvers()
+        if self._step_bounds is not None:  # built mid-step: the step's pedal side
+            qp.set_input_bounds(*self._step_bounds)
         self._band_qps[band] = qp  # the most recently used end
         while len(self._band_qps) > BAND_QPS:
             self._band_qps.popitem(last=False)
