@@ -18,10 +18,12 @@ from harness.report.figures import loss_figure
 from harness.report.jobs import NEVER_STARTED
 from harness.report.summary import summary
 from harness.report.tables import (
+    QUALITY,
     course_speed_table,
     course_table,
     generalization_table,
     prediction_table,
+    quality_table,
 )
 from tests.test_pipeline import TINY
 
@@ -517,3 +519,31 @@ def test_a_runs_summary_says_per_controller_whether_the_lane_change_passed() -> 
         "2 cones (steering 583 reversals/min, pedal 83 throttle-brake changes/min, jerk 4.4 m/s³),"
         " 3 deadline misses" in summary(metrics).splitlines()[1]
     )
+
+
+def test_the_quality_table_averages_how_smoothly_each_controller_drove_over_seeds() -> None:
+    """A row per learner × controller × reference with tracking…quality's means over seeds; a
+    job measured before the key existed gives no row, so an older study's report is unchanged."""
+
+    def quality(reversals: float, jerk: float) -> dict:
+        keys = dict.fromkeys(QUALITY, 0.0)
+        return keys | {"steering_reversals_per_min": reversals, "long_jerk_rms_mps3": jerk}
+
+    def metrics(reversals: float, jerk: float) -> dict:
+        run = {"rmse": {"vx": 0.1}, "horizon": {"Np": 60, "Nc": 50}}
+        return {
+            "tracking": {
+                "controllers": {
+                    "main": {
+                        "double_lane_change": run | {"quality": quality(reversals, jerk)},
+                        "test_episode/episode_0000": run,  # measured before quality: no row
+                    }
+                }
+            }
+        }
+
+    jobs = [_job("deep_edmd", 0, metrics(60.0, 1.0)), _job("deep_edmd", 1, metrics(80.0, 2.0))]
+    (row,) = quality_table(jobs).rows
+    assert row[:6] == ["deep_edmd", "main", "60/50", "double_lane_change", "—", "2"]
+    assert row[6] == "70 ± 14" and row[10] == "1.5 ± 0.71"
+    assert quality_table([_job("edmd", 0, {"tracking": {"rmse": {"vx": 0.1}}})]).rows == []

@@ -191,6 +191,68 @@ def tracking_table(jobs: list[Run]) -> Table:
     return table
 
 
+QUALITY = (  # tracking…quality's keys, in the table's order (harness/evaluation/quality.py)
+    "steering_reversals_per_min",
+    "steer_rate_rms_deg_s",
+    "pedal_changes_per_min",
+    "brake_time_share",
+    "long_jerk_rms_mps3",
+    "lat_jerk_rms_mps3",
+    "lat_accel_peak_mps2",
+    "steer_increment_limit_share",
+    "pedal_increment_limit_share",
+)
+
+
+def quality_table(jobs: list[Run]) -> Table:
+    """How smoothly every closed loop drove (``tracking…quality``), beside the tracking table's
+    rows; runs measured before the key existed have no row."""
+    table = Table(
+        "How smoothly DE-MPC drove: steering reversals and wheel rate (deg/s), throttle-brake "
+        "changes a minute and time on the brake, jerk (m/s³), peak lateral acceleration (m/s²), "
+        "steps at the increment bound (share)",
+        [
+            "learner",
+            "controller",
+            "Np/Nc",
+            "reference",
+            "variant",
+            "jobs",
+            "reversals /min",
+            "wheel rate RMS",
+            "throttle-brake /min",
+            "on the brake",
+            "long. jerk RMS",
+            "lat. jerk RMS",
+            "peak |a_y|",
+            "wheel at bound",
+            "pedal at bound",
+        ],
+    )
+    common = common_overrides(jobs)
+    runs: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
+    for job in jobs:
+        tracking = _get(job.metrics, "tracking") or {}
+        for controller, reference, metrics in _tracking_runs(tracking, job.controller):
+            quality = metrics.get("quality")
+            if not isinstance(quality, Mapping):
+                continue
+            horizon = metrics.get("horizon") or {}
+            key = (
+                job.learner,
+                controller,
+                f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
+                reference,
+                variant(job, common) or "—",
+            )
+            runs[key].append(quality)
+    for key, members in sorted(runs.items()):
+        table.rows.append(
+            [*key, str(len(members))] + [_mean_std(m.get(k) for m in members) for k in QUALITY]
+        )
+    return table
+
+
 def training_table(jobs: list[Run]) -> Table:
     table = Table("Training", ["learner", "variant", "jobs", "fit time (s)", "train frames"])
     for (learner, varied), members in _group(jobs, _learner).items():
@@ -484,6 +546,7 @@ def tables(runs: list[Run]) -> dict[str, Table]:
         "prediction_window_3s": prediction_table(finished, "rmse_window_3s"),
         "prediction_window_1.5s": prediction_table(finished, "rmse_window_1.5s"),
         "tracking": tracking_table(finished),
+        "quality": quality_table(finished),
         "robustness": robustness_table(finished),
         "generalization": generalization_table(finished),
         "step_response": step_response_table(finished),
