@@ -14,8 +14,9 @@ Each row (``--jsonl`` appends it; ``--table FILE`` prints a file's rows, average
 the lane change's verdict (max deviation m, cones), the tracking RMSE (vx m/s, yaw rate rad/s),
 and ``tracking…quality``: steering reversals per minute, throttle-brake changes (a count, the
 per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
-each with its ratio to the baseline's in the same arm. docs/guide/control.md, "Why it drove
-roughly", ran on this. Run arms two at a time on two cores (one thread each).
+each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
+at 80 km/h, the plant against each fitted model (the models of the arms). docs/guide/control.md,
+"Why it drove roughly", ran on this. Run arms two at a time on two cores (one thread each).
 """
 
 from __future__ import annotations
@@ -190,6 +191,41 @@ def table(rows: Sequence[dict]) -> str:
     return "\n".join(lines)
 
 
+PEDALS = (-2.0, -1.0, -0.3, 0.0, 0.05, 0.1, 0.2)  # brake in -MPa, throttle 0..0.2
+
+
+def pedal_slopes(learner: str, seeds: Sequence[int], speed_mps: float = 22.2) -> str:
+    """What the pedal does at ``speed_mps`` straight ahead, the plant against each fitted model:
+    the mean longitudinal acceleration (m/s²) over 0.2-0.5 s of a pedal held from rest-rolling."""
+    from harness.plant import Sedan
+    from learners.base import load
+
+    lines = [
+        f"| model | {' | '.join(f'{p:+g}' for p in PEDALS)} |",
+        "|" + "---|" * (len(PEDALS) + 1),
+    ]
+
+    def acceleration(vx: np.ndarray) -> float:
+        return float((vx[50] - vx[20]) / 0.3)
+
+    plant_row = []
+    for pedal in PEDALS:
+        plant = Sedan()
+        states = [plant.reset(speed_mps=speed_mps)]
+        states += [plant.step(np.array([0.0, pedal])) for _ in range(50)]
+        plant_row.append(acceleration(np.array(states)[:, 0]))
+    lines.append("| plant | " + " | ".join(f"{a:+.2f}" for a in plant_row) + " |")
+    for seed in seeds:
+        (path,) = MODELS.glob(f"{learner}_seed{seed}_*.pt")
+        model = load(path)
+        row = []
+        for pedal in PEDALS:
+            inputs = np.tile([0.0, pedal], (50, 1))
+            row.append(acceleration(model.predict(np.array([speed_mps, 0.0, 0.0]), inputs)[:, 0]))
+        lines.append(f"| {learner} seed {seed} | " + " | ".join(f"{a:+.2f}" for a in row) + " |")
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arm", default="today")
@@ -198,7 +234,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--both", action="store_true", help="apply to the baseline too")
     parser.add_argument("--jsonl", type=Path)
     parser.add_argument("--table", type=Path, help="print a file's rows and stop")
+    parser.add_argument(
+        "--slopes", action="store_true", help="the pedal's effect, plant against the models"
+    )
     args, overrides = parser.parse_known_args(argv)
+    if args.slopes:
+        seeds = [int(s) for s in args.seeds.split(",")]
+        for learner in args.learners.split(","):
+            print(pedal_slopes(learner, seeds))
+        return
     if args.table is not None:
         rows = [json.loads(line) for line in args.table.read_text().splitlines() if line]
         print(table(rows))

@@ -1,12 +1,12 @@
 """One side of the pedal at a time: throttle or brake, the other only when the plan needs it.
 
 A model with one slope for the signed pedal (every model affine in u: EDMD, Deep EDMD, input
-EDMD) has the throttle and the brake wrong in opposite directions: on ``data=default`` Deep
-EDMD's brake decelerates 3-6x less per MPa than the sedan's, its throttle 1.5x more. A QP on
-such a model shaves a 0.1 m/s overshoot with the brake, which then bites several times harder
-than planned, and the throttle catches it: the main controller changed between throttle and
-brake 8 times in the 7 s of a constant-speed lane change (docs/guide/control.md, "Why it drove
-roughly").
+EDMD) has the throttle and the brake wrong in opposite directions: on ``data=default`` at
+80 km/h Deep EDMD's brake decelerates 5-6x less per MPa than the sedan's, its throttle 1.7-2.1x
+more (3 seeds). A QP on such a model shaves a 0.1 m/s overshoot with the brake, which bites
+several times harder than planned, and the throttle catches it: the main controller changed
+between throttle and brake 8 times in the 7 s of a constant-speed lane change
+(docs/guide/control.md, "Why it drove roughly").
 
 A driver lifts off before braking. :class:`PedalSides` keeps the plan on the side the pedal is
 on (throttle and coasting, or brake and releasing): the pedal may go back to released, never
