@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -33,7 +32,7 @@ from harness.core.paths import CONF_DIR
 from harness.core.phases import seconds
 from harness.core.threads import use_threads
 from harness.output import update_metrics
-from harness.report.jobs import NEUTRAL, job_dirname
+from harness.report.jobs import FINISHED, config_digest, job_dirname
 from harness.report.summary import summary, title
 
 log = logging.getLogger(__name__)
@@ -176,29 +175,6 @@ def _job(cfg: DictConfig) -> None:
             unlock_directory(output_dir)
 
 
-# What a finished job leaves beside metrics.json: the digest of the config it ran. A sweep rerun
-# into the same directory skips a job whose digest matches (and whose metrics.json is there),
-# so a sweep of hours can be stopped and started again; anything else runs (again).
-FINISHED = "finished.json"
-
-
-def config_digest(cfg: DictConfig) -> str:
-    """SHA-256 of the job's config as composed (interpolations unresolved), without Hydra's own
-    node and the settings that change no number (``harness.report.jobs.NEUTRAL``)."""
-    values = OmegaConf.to_container(cfg, resolve=False)
-    assert isinstance(values, dict)
-    values.pop("hydra", None)
-    for key in NEUTRAL:
-        *parents, leaf = key.split(".")
-        node: Any = values
-        for parent in parents:
-            node = node.get(parent, {}) if isinstance(node, dict) else {}
-        if isinstance(node, dict):
-            node.pop(leaf, None)
-    text = json.dumps(values, sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
 def finished_before(digest: str, output_dir: Path) -> bool:
     """Whether ``output_dir`` holds the finished job of the config with ``digest``: its
     metrics.json, no error, and a ``finished.json`` with that digest."""
@@ -214,6 +190,31 @@ def finished_before(digest: str, output_dir: Path) -> bool:
     )
 
 
+# A run's directory holds one run's results: what a run before it left there moves here first.
+PREVIOUS = "previous"
+RESULTS = ("metrics.json", FINISHED, "error.json")  # a run was here that ended (or failed)
+KEPT = (".lock", ".log", ".ckpt")  # the lock, Hydra's log of this job, training checkpoints
+
+
+def move_previous_results(output_dir: Path) -> Path | None:
+    """Where the files a run before this one left in ``output_dir`` went (``previous/<time>/``),
+    or None when no run ended there. Its metrics.json, finished.json, error.json, figures,
+    arrays, recordings and model move; the training checkpoints (a killed run resumes from
+    them), Hydra's ``.hydra/`` and log, and the lock stay."""
+    if not any((output_dir / name).exists() for name in RESULTS):
+        return None
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    target = output_dir / PREVIOUS / stamp
+    suffix = 1
+    while target.exists():
+        target, suffix = output_dir / PREVIOUS / f"{stamp}_{suffix}", suffix + 1
+    target.mkdir(parents=True)
+    for path in sorted(output_dir.iterdir()):
+        if path.is_file() and not path.name.endswith(KEPT):
+            path.rename(target / path.name)
+    return target
+
+
 def _run_and_record(cfg: DictConfig, output_dir: Path, multirun: bool) -> None:
     digest = config_digest(cfg)  # before the run: building the parts may touch the config
     if multirun and finished_before(digest, output_dir):
@@ -224,10 +225,14 @@ def _run_and_record(cfg: DictConfig, output_dir: Path, multirun: bool) -> None:
             output_dir / FINISHED,
         )
         return
-    # A rerun into the directory of a failed job: its old error must not outlive this run, nor
-    # an old finished.json a run that fails.
-    (output_dir / "error.json").unlink(missing_ok=True)
-    (output_dir / FINISHED).unlink(missing_ok=True)
+    moved = move_previous_results(output_dir)
+    if moved is not None:
+        log.warning(
+            "%s held the results of another run (another config, a failure or a rerun): moved "
+            "to %s, so that its metrics.json is this run's alone",
+            output_dir,
+            moved,
+        )
     try:
         run(cfg, output_dir)
         write_json_atomic(

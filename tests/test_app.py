@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -106,6 +107,36 @@ def test_collect_task_writes_coverage_metrics_figure_and_recording(tmp_path: Pat
     assert data["coverage"]["episodes"] == 3 and data["coverage"]["frames"] > 300
     assert Path(data["path"]).parent == tmp_path / "datasets"
     assert (run_dir / "data_coverage.png").exists() and (run_dir / "collect.rrd").exists()
+
+
+def test_a_run_into_another_runs_directory_moves_its_results_aside_and_never_merges_them(
+    characterize_run, tmp_path: Path
+) -> None:
+    """A finished characterization's directory reused by a collection: the new metrics.json is
+    the collection's alone, the characterization's files move to previous/<time>/ (said in one
+    line), and the report counts the job under its own config."""
+    from harness.report.jobs import read_run
+
+    _, finished = characterize_run
+    run_dir = tmp_path / "reused"
+    shutil.copytree(finished, run_dir)
+    result = run_harness(
+        tmp_path,
+        "task=collect",
+        "data.episodes=3",
+        "data.min_steps=100",
+        "data.max_steps=150",
+        "data.split={train: 1, validation: 1, test: 1}",
+        f"data.root={tmp_path}/datasets",
+        f"hydra.run.dir={run_dir}",
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert set(json.loads((run_dir / "metrics.json").read_text())) == {"data"}
+    (previous,) = (run_dir / "previous").iterdir()
+    assert set(json.loads((previous / "metrics.json").read_text())) == {"characterize"}
+    assert (previous / "finished.json").exists() and not (run_dir / "characterize.rrd").exists()
+    assert f"moved to {previous}" in result.stdout + result.stderr
+    assert read_run(run_dir).error is None and set(read_run(run_dir).metrics or {}) == {"data"}
 
 
 def test_a_long_override_list_still_makes_a_valid_distinct_job_directory() -> None:

@@ -185,6 +185,23 @@ def test_a_sweep_rerun_into_its_directory_skips_the_finished_jobs_and_runs_the_r
     assert "4 of 4 jobs finished" in (copy / "report" / "report.md").read_text()
 
 
+def test_a_job_whose_results_are_another_configs_is_not_counted_and_says_why(
+    tiny_sweep: Path, tmp_path: Path
+) -> None:
+    """A finished.json whose digest is not its directory's config (another run ended there):
+    the job's metrics.json is not reported as this config's; the failures say which file."""
+    copy = tmp_path / "copy"
+    shutil.copytree(tiny_sweep, copy)
+    (victim,) = [
+        j.path for j in read_runs(copy) if "learner=elm_edmd," in j.name and "seed=0" in j.name
+    ]
+    record = json.loads((victim / "finished.json").read_text())
+    (victim / "finished.json").write_text(json.dumps(record | {"config_sha256": "0" * 64}))
+    (run,) = [j for j in read_runs(copy) if j.path == victim]
+    assert run.metrics is None and "is of another config" in str(run.error)
+    assert "4 of 6 jobs finished" in report(copy).read_text()  # one failed by design
+
+
 @pytest.mark.parametrize("damaged", ["metrics.json", ".hydra/hydra.yaml"])
 def test_a_damaged_job_file_is_named_in_the_failures_and_the_rest_reported(
     tiny_sweep: Path, tmp_path: Path, damaged: str

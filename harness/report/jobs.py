@@ -90,6 +90,30 @@ class Run:
         return str(self.choices.get(group) or self.overrides.get(group) or "—")
 
 
+# What a finished job leaves beside metrics.json: the digest of the config it ran. A sweep rerun
+# into the same directory skips a job whose digest matches (and whose metrics.json is there),
+# so a sweep of hours can be stopped and started again; anything else runs (again). The report
+# counts a job's metrics only where the digest is its config's.
+FINISHED = "finished.json"
+
+
+def config_digest(cfg: Any) -> str:
+    """SHA-256 of the job's config as composed (interpolations unresolved), without Hydra's own
+    node and the settings that change no number (``harness.report.jobs.NEUTRAL``)."""
+    values = OmegaConf.to_container(cfg, resolve=False)
+    assert isinstance(values, dict)
+    values.pop("hydra", None)
+    for key in NEUTRAL:
+        *parents, leaf = key.split(".")
+        node: Any = values
+        for parent in parents:
+            node = node.get(parent, {}) if isinstance(node, dict) else {}
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    text = json.dumps(values, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def job_dirname(overrides: str, limit: int = JOB_DIRNAME_BYTES) -> str:
     """A sweep job's directory (``hydra.sweep.subdir``): its overrides with ``/`` (a path in a
     value) as ``_``, cut to ``limit`` bytes plus a hash when longer (the full list is in
@@ -131,6 +155,17 @@ def read_run(directory: Path) -> Run:
         message = f"{type(error).__name__}: {error}".splitlines()[0]
         return Run(directory, error=f"{directory / '.hydra'} is unreadable ({message})")
     metrics, metrics_error = _read_json(directory / "metrics.json")
+    finished, _ = _read_json(directory / FINISHED)
+    if finished is not None and finished.get("config_sha256") != config_digest(config):
+        # A run of another config ended here (a reused directory): its numbers are not this
+        # config's, whatever metrics.json holds.
+        metrics, metrics_error = (
+            None,
+            (
+                f"{directory / FINISHED} is of another config than {directory / '.hydra'}: its "
+                "metrics.json is another run's; rerun the job"
+            ),
+        )
     if metrics_error is None:
         run.metrics = metrics
     failure, failure_error = _read_json(directory / "error.json")
