@@ -119,6 +119,8 @@ def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> No
         ("nan", r"b\.csv has a non-finite vy \(nan\) in data row 8"),
         ("time", r"b\.csv has time that does not increase at data row 11"),
         ("period", r"b\.csv is sampled every 0\.03 s, which does not divide .*0\.05"),
+        ("twice", r"b\.csv has two columns named 'vy' \(columns 2 and 3, 0-based\): rename one"),
+        ("ragged", r"b\.csv is not a table of numbers: Line #21 \(got 6 columns instead of 7\)"),
     ],
 )
 def test_a_bad_log_fails_in_one_line_naming_the_file(
@@ -134,13 +136,49 @@ def test_a_bad_log_fails_in_one_line_naming_the_file(
     elif damage == "period":
         table[:, 0] *= 3
     write_csv(tmp_path / "b.csv", table)
+    text = (tmp_path / "b.csv").read_text()
     if damage == "missing":
-        text = (tmp_path / "b.csv").read_text().replace(",r,", ",yaw,", 1)
-        (tmp_path / "b.csv").write_text(text)
+        (tmp_path / "b.csv").write_text(text.replace(",r,", ",yaw,", 1))
+    elif damage == "twice":  # the last of two would have won, silently
+        (tmp_path / "b.csv").write_text(text.replace(",r,", ",vy,", 1))
+    elif damage == "ragged":  # numpy's reason is on its second line
+        lines = text.splitlines()
+        lines[20] = lines[20].rsplit(",", 1)[0]
+        (tmp_path / "b.csv").write_text("\n".join(lines) + "\n")
     with pytest.raises(DatasetError, match=message) as info:
         import_logs(logs_config(tmp_path))
     assert "\n" not in str(info.value)
     assert not list((tmp_path / "store").glob("*/manifest.json"))  # nothing stored half
+
+
+def test_only_the_configured_columns_are_read_as_numbers(tmp_path: Path) -> None:
+    """A text column or variable beside the configured ones (a driver's name, a unit) leaves
+    the file readable; configured, it is refused naming it, as is a MATLAB struct."""
+    table = drive(0)
+    columns = {c: table[:, j] for j, c in enumerate(COLUMNS)}
+    savemat(tmp_path / "units.mat", columns | {"units": "km/h"})
+    episode = read_log(tmp_path / "units.mat", logs_config(tmp_path))
+    np.testing.assert_allclose(episode.states, expected(table)[1], rtol=1e-12)
+    savemat(tmp_path / "struct.mat", columns | {"r": {"value": table[:, 3]}})
+    with pytest.raises(ValueError, match=r"has a struct, not numbers, in 'r' for states.yaw_rate"):
+        read_log(tmp_path / "struct.mat", logs_config(tmp_path))
+    parquet = pytest.importorskip("pyarrow.parquet")
+    import pyarrow
+
+    text = pyarrow.table(columns | {"driver": ["someone"] * len(table)})
+    parquet.write_table(text, tmp_path / "driver.parquet")
+    episode = read_log(tmp_path / "driver.parquet", logs_config(tmp_path))
+    np.testing.assert_allclose(episode.states, expected(table)[1], rtol=1e-12)
+    config = logs_config(tmp_path, inputs={"steer": "driver", "throttle": "throttle"})
+    with pytest.raises(ValueError, match=r"has text, not numbers, in 'driver' for inputs.steer"):
+        read_log(tmp_path / "driver.parquet", config)
+
+
+def test_a_csv_with_a_byte_order_mark_reads_its_first_column_by_name(tmp_path: Path) -> None:
+    table = drive(0)
+    path = write_csv(tmp_path / "excel.csv", table)
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())  # as spreadsheet programs save
+    np.testing.assert_allclose(read_log(path, logs_config(tmp_path)).time_s, expected(table)[0])
 
 
 def test_logs_are_stored_once_by_content_and_split_by_seed_or_by_file(tmp_path: Path) -> None:

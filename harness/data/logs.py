@@ -190,11 +190,32 @@ class _Table:
     def _read_csv(self) -> None:
         with self.path.open() as handle:
             first = handle.readline().strip()
-        fields = [f.strip().strip('"') for f in first.split(",")]
+        fields = [f.strip().strip('"').lstrip("\ufeff") for f in first.split(",")]
         header = any(_not_a_number(f) for f in fields)
-        values = np.genfromtxt(
-            self.path, delimiter=",", skip_header=1 if header else 0, dtype=float, ndmin=2
-        )
+        if header:
+            seen: dict[str, int] = {}
+            for j, name in enumerate(fields):
+                if name in seen:
+                    raise ValueError(
+                        f"has two columns named {name!r} (columns {seen[name]} and {j}, "
+                        "0-based): rename one"
+                    )
+                seen[name] = j
+        try:
+            values = np.genfromtxt(
+                self.path,
+                delimiter=",",
+                skip_header=1 if header else 0,
+                dtype=float,
+                ndmin=2,
+                encoding="utf-8-sig",
+            )
+        except ValueError as error:  # numpy's first line says only "Some errors were detected"
+            reasons = [line.strip() for line in str(error).splitlines()[1:] if line.strip()]
+            more = f" and {len(reasons) - 1} more" if len(reasons) > 1 else ""
+            raise ValueError(
+                f"is not a table of numbers: {reasons[0] if reasons else error}{more}"
+            ) from None
         if header:
             if values.shape[1] != len(fields):
                 raise ValueError(f"has {len(fields)} header names for {values.shape[1]} columns")
@@ -209,10 +230,9 @@ class _Table:
                 "is Parquet, which needs pyarrow: pip install pyarrow (or export CSV)"
             ) from None
         table = parquet.read_table(self.path)
-        self.named = {
-            name: np.asarray(table.column(name).to_numpy(), dtype=float)
-            for name in table.column_names
-        }
+        # Columns as they are: only those the config names are read as numbers (column()), so
+        # a text column beside them (a driver's name) is no error.
+        self.named = {name: table.column(name).to_numpy() for name in table.column_names}
 
     def _load_arrays(self, suffix: str) -> dict[str, np.ndarray]:
         if suffix == ".npz":
@@ -235,13 +255,15 @@ class _Table:
                 raise ValueError(f"has no array {array!r} (it has {', '.join(sorted(arrays))})")
             self.matrix = np.atleast_2d(np.asarray(arrays[array], dtype=float))
             return
-        # A column per variable: 1-D, or a MATLAB column or row vector (T x 1, 1 x T).
+        # A column per variable: 1-D, or a MATLAB column or row vector (T x 1, 1 x T); a
+        # variable of text or a struct is kept as it is and refused only if a column names it.
         self.named = {
-            k: np.asarray(v, dtype=float).reshape(-1)
+            k: np.asarray(v).reshape(-1)
             for k, v in arrays.items()
             if v.ndim == 1 or (v.ndim == 2 and 1 in v.shape)
         }
-        matrices = [k for k, v in arrays.items() if v.ndim == 2 and min(v.shape) > 1]
+        numeric = {k: v for k, v in arrays.items() if _numeric(v)}
+        matrices = [k for k, v in numeric.items() if v.ndim == 2 and min(v.shape) > 1]
         if len(matrices) == 1:  # one table: columns by index too
             self.matrix = np.asarray(arrays[matrices[0]], dtype=float)
 
@@ -252,6 +274,12 @@ class _Table:
                 known = ", ".join(sorted(self.named)[:12]) or "none: give 0-based indices"
                 raise ValueError(f"has no column {name!r} for {key} (columns: {known})")
             values = self.named[name]
+            if not _numeric(values):
+                kind = _kind(values)
+                raise ValueError(
+                    f"has {kind}, not numbers, in {name!r} for {key}: export that column as "
+                    "numbers (a MATLAB struct: save its fields as variables)"
+                )
         else:
             if self.matrix is None:
                 raise ValueError(f"has no table to take column {name} from for {key}: name it")
@@ -259,6 +287,21 @@ class _Table:
                 raise ValueError(f"has {self.matrix.shape[1]} columns; {key} asks for index {name}")
             values = self.matrix[:, name]
         return np.asarray(values, dtype=float) * column.scale
+
+
+def _numeric(values: np.ndarray) -> bool:
+    """Numbers or booleans (a column of text, objects or a MATLAB struct is not)."""
+    return bool(np.issubdtype(values.dtype, np.number) or values.dtype == np.bool_)
+
+
+def _kind(values: np.ndarray) -> str:
+    """What a column that is not numbers holds, in words: text, a struct or objects."""
+    first = values.flat[0] if values.size else None
+    if values.dtype.names or (isinstance(first, np.ndarray) and first.dtype.names):
+        return "a struct"
+    if values.dtype.kind in "US" or isinstance(first, str | bytes):
+        return "text"
+    return "objects"
 
 
 def _not_a_number(text: str) -> bool:
