@@ -564,3 +564,25 @@ def test_the_quality_table_averages_how_smoothly_each_controller_drove_over_seed
     assert row[:6] == ["deep_edmd", "main", "60/50", "double_lane_change", "—", "2"]
     assert row[6] == "70 ± 14" and row[10] == "1.5 ± 0.71"
     assert quality_table([_job("edmd", 0, {"tracking": {"rmse": {"vx": 0.1}}})]).rows == []
+
+
+def test_the_summary_prints_a_value_the_run_could_not_compute_and_says_when_solves_failed() -> None:
+    """A null RMSE (an overflow, a window longer than the drive) is n/a, not a crash; failed
+    solves are counted beside the deadline misses."""
+    metrics = {
+        "prediction": {"episode_0000": {"rmse": {"vx": None, "vy": 0.05, "yaw_rate": 0.02}}},
+        "tracking": {
+            "controllers": {
+                "main": {
+                    "test_episode/episode_0000": {
+                        "rmse": {"vx": 0.05, "vy": 0.02, "yaw_rate": 0.01},
+                        "solver_failures": 268,
+                        "steps": 387,
+                    }
+                }
+            }
+        },
+    }
+    lines = summary(metrics).splitlines()
+    assert lines[0].endswith("open loop RMSE vx / vy / r: n/a / 0.05 / 0.02")
+    assert lines[1].endswith("RMSE 0.05 / 0.02 / 0.01, 268 of 387 solves failed")

@@ -9,7 +9,8 @@ lines say what the file says:
   lateral deviation from the centre line and the cones hit; every test-drive reference: the
   tracking RMSE; how smoothly each run drove where its metrics say (``quality``: steering
   reversals and throttle-brake changes a minute, longitudinal jerk RMS); the step's time on its
-  first reference (median / p99, ms) and deadline misses.
+  first reference (median / p99, ms), deadline misses and failed solves. A value the run could
+  not compute (null in metrics.json) is printed n/a.
 """
 
 from __future__ import annotations
@@ -43,7 +44,12 @@ def summary(metrics: Mapping[str, Any], title: str = "") -> str:
 
 
 def _rmse(values: Mapping[str, Any]) -> str:
-    return " / ".join(f"{float(values[state]):.3g}" for state in STATES)
+    """vx / vy / r; a value the run could not compute (null: an overflow, no window) as n/a."""
+    return " / ".join(_number(values.get(state)) for state in STATES)
+
+
+def _number(value: Any, form: str = ".3g") -> str:
+    return "n/a" if value is None else f"{float(value):{form}}"
 
 
 def _prediction_lines(prediction: Mapping[str, Any]) -> list[str]:
@@ -91,6 +97,9 @@ def _controller_line(runs: Mapping[str, Any]) -> str:
         misses = run.get("deadline_misses", 0)
         if misses:
             parts[-1] += f", {misses} deadline misses"
+        failures = run.get("solver_failures", 0)
+        if failures:  # each fell back to its last plan's next move: the loop ran open meanwhile
+            parts[-1] += f", {failures} of {run.get('steps', '?')} solves failed"
     if step:
         parts.append(f"step {step['median']:.2f} / {step['p99']:.2f} ms (median / p99)")
     return "; ".join(parts)
