@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra.errors import InstantiationException
 
 from harness.core.episode import Episode
 from harness.output import load_arrays
@@ -116,6 +117,27 @@ def test_a_saved_model_is_reused_by_path_in_another_run(edmd_run) -> None:
     assert provenance["this_run"]["plant"] == "sedan"
     assert provenance["this_run"]["dataset"] == metrics["data"]["key"]
     assert provenance["this_run"]["normalizer"] == metrics["data"]["normalizer"]
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (
+            "task.prediction_window_steps=1",
+            r"task\.prediction_window_steps must be an integer >= 2",
+        ),
+        ("task.prediction_window_s=[0.005]", r"task\.prediction_window_s 0\.005 s is under two"),
+    ],
+)
+def test_a_window_too_short_to_predict_anything_is_refused_before_training(
+    edmd_run, override: str, message: str
+) -> None:
+    """A one-step window scores the measured state alone: every window metric would be null."""
+    tmp, _, _ = edmd_run
+    run_dir = tmp / "short_window"
+    with pytest.raises((ValueError, InstantiationException), match=message):
+        run_main(tmp, run_dir, "learner=edmd", override)
+    assert not (run_dir / "model_edmd.pt").exists()  # refused before the fit
 
 
 def test_a_run_says_what_each_phase_did_and_how_long_it_took(

@@ -123,7 +123,8 @@ class Pipeline:
                 learner.check_size(self.data.max_steps)  # logs: once read, before the fit
             else:
                 learner.check_input_names(list(self.data.inputs))  # the logs' column map
-        integer("task.prediction_window_steps", prediction_window_steps)
+        # A window of one step is its measured first state only: no prediction to score.
+        integer("task.prediction_window_steps", prediction_window_steps, 2)
         windows = (
             [prediction_window_s]
             if isinstance(prediction_window_s, int | float)
@@ -171,6 +172,7 @@ class Pipeline:
             dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
             phase.done = data_done(self.data.name, data_metrics)
         logs = dataset.from_logs
+        check_windows(self.windows_s, dataset.period_s)
         on_plant = not logs or self.logs_from_plant
         if logs and self.logs_from_plant:
             check_logs_drive(plant, dataset, self.data.name)
@@ -600,6 +602,17 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
+
+
+def check_windows(windows_s: Sequence[float], period_s: float) -> None:
+    """Every window of task.prediction_window_s at least two of the data's periods (one step
+    is the measured state only: its RMSE would be empty), checked before training."""
+    for window in windows_s:
+        if round(window / period_s) < 2:
+            raise ValueError(
+                f"task.prediction_window_s {window:g} s is under two of the data's periods "
+                f"({period_s:g} s): no step to predict; make it >= {2 * period_s:g} s"
+            )
 
 
 def check_training_data(dataset: Dataset) -> None:
