@@ -265,6 +265,13 @@ def main() -> None:
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
         _job()
+    except KeyboardInterrupt:  # Ctrl-C: every file is written atomically, a training resumes
+        print(
+            "interrupted: what finished is in the run directory; the same command resumes "
+            "(a training from its checkpoint, a sweep from its unfinished jobs)",
+            file=sys.stderr,
+        )
+        sys.exit(130)
     except Exception as error:
         print(f"error: {composition_error(error)}", file=sys.stderr)
         sys.exit(2)

@@ -445,6 +445,13 @@ def test_a_killed_collection_leaves_no_process_behind_and_resumes_to_the_same_by
             process.kill()
             process.wait()
     assert process.returncode != 0
+    if signum == signal.SIGINT:  # Ctrl-C: one line that says how to go on, no traceback
+        said = (tmp_path / "stderr.txt").read_text()
+        assert process.returncode == 130
+        assert any(
+            line.startswith("interrupted: what finished is in") for line in said.splitlines()
+        )
+        assert "Traceback" not in said
     deadline = time.monotonic() + 5
     while any(alive(pid) for pid in family) and time.monotonic() < deadline:
         time.sleep(0.05)
