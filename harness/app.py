@@ -266,8 +266,8 @@ def main() -> None:
     try:
         _job()
     except KeyboardInterrupt:  # Ctrl-C: every file is written atomically, a training resumes
-        print(
-            "interrupted: what finished is in the run directory; the same command resumes "
+        print(  # on its own line: a progress bar may have been cut mid-line
+            "\ninterrupted: what finished is in the run directory; the same command resumes "
             "(a training from its checkpoint, a sweep from its unfinished jobs)",
             file=sys.stderr,
         )
