@@ -216,6 +216,12 @@ def test_logs_are_stored_once_by_content_and_split_by_seed_or_by_file(tmp_path: 
     )
     with pytest.raises(DatasetError, match=r"run_3\.csv is in train and in validation"):
         import_logs(twice)
+    # Whole numbers are counts of files: 2/1/1 of 5 files is refused, not dealt as 3/1/1.
+    with pytest.raises(DatasetError, match=r"counts 2/1/1 sum to 4, but data.files match 5"):
+        import_logs(logs_config(tmp_path, split={"train": 2, "validation": 1, "test": 1}))
+    counted = logs_config(tmp_path, split={"train": 2, "validation": 2, "test": 1})
+    split = load(import_logs(counted)).manifest["split"]
+    assert [len(split[s]) for s in ("train", "validation", "test")] == [2, 2, 1]
 
 
 def test_learners_fit_and_predict_three_inputs_and_persistence_has_its_closed_form(

@@ -82,7 +82,7 @@ class LogsConfig:
     m, m, rad) is optional and only drawn. Give ``time`` (s) or ``period_s``; ``model_period_s``
     (default: the sampling period) must be a whole multiple of it: every k-th sample is kept and
     its input held over the model period. ``split`` lists file globs per split, or gives
-    fractions (or counts) that ``seed`` deals the files into.
+    fractions (or whole counts, which must sum to the files) that ``seed`` deals the files into.
     """
 
     name: str = "logs"
@@ -440,7 +440,15 @@ def split_files(logs: LogsConfig, files: Sequence[Path]) -> dict[str, list[str]]
             chosen[split] = sorted(set(names))
         return chosen
     names = sorted(relative.values())
-    weights = np.array([float(logs.split[s]) for s in SPLITS])
+    given = [logs.split[s] for s in SPLITS]
+    if all(isinstance(v, int) for v in given) and sum(given) != len(names):
+        # Whole numbers are counts of files: taken as proportions they would move files
+        # between splits unasked (2/1/1 of 5 files would have been 3/1/1).
+        raise DatasetError(
+            f"data.split counts {'/'.join(map(str, given))} sum to {sum(given)}, but data.files "
+            f"match {len(names)} files: give counts that sum to {len(names)}, or fractions"
+        )
+    weights = np.array([float(v) for v in given])
     counts = _counts(weights, len(names))
     order = np.random.default_rng([logs.seed, 3]).permutation(len(names))
     shuffled = [names[i] for i in order]
@@ -449,7 +457,8 @@ def split_files(logs: LogsConfig, files: Sequence[Path]) -> dict[str, list[str]]
 
 
 def _counts(weights: np.ndarray, files: int) -> list[int]:
-    """Files per split in proportion to ``weights``, at least one each (largest remainders)."""
+    """Files per split in proportion to ``weights``, at least one each (largest remainders);
+    counts that sum to ``files`` are kept as they are."""
     if files < len(weights):
         raise DatasetError(f"data.split needs at least {len(weights)} files, found {files}")
     exact = weights / weights.sum() * files
