@@ -120,6 +120,8 @@ def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> No
         ("time", r"b\.csv has time that does not increase at data row 11"),
         ("period", r"b\.csv is sampled every 0\.03 s, which does not divide .*0\.05"),
         ("twice", r"b\.csv has two columns named 'vy' \(columns 2 and 3, 0-based\): rename one"),
+        ("sentinel", r"b\.csv has vy = 999999 in data row 8, outside \[-50, 50\] \(data\.state_"),
+        ("huge", r"b\.csv has yaw_rate = 1e\+300 in data row 8, outside \[-10, 10\]"),
         ("ragged", r"b\.csv is not a table of numbers: Line #21 \(got 6 columns instead of 7\)"),
     ],
 )
@@ -131,6 +133,10 @@ def test_a_bad_log_fails_in_one_line_naming_the_file(
     table = drive(9)
     if damage == "nan":
         table[7, 2] = np.nan
+    elif damage == "sentinel":  # a logger's "no value": it ran to the end, RMSE 2.6e3
+        table[7, 2] = 999999.0
+    elif damage == "huge":  # finite: it crashed the summary after training
+        table[7, 3] = 1e300
     elif damage == "time":
         table[10, 0] = table[9, 0]
     elif damage == "period":
@@ -210,6 +216,12 @@ def test_logs_are_stored_once_by_content_and_split_by_seed_or_by_file(tmp_path: 
     )
     with pytest.raises(DatasetError, match=r"run_3\.csv is in train and in validation"):
         import_logs(twice)
+    # Whole numbers are counts of files: 2/1/1 of 5 files is refused, not dealt as 3/1/1.
+    with pytest.raises(DatasetError, match=r"counts 2/1/1 sum to 4, but data.files match 5"):
+        import_logs(logs_config(tmp_path, split={"train": 2, "validation": 1, "test": 1}))
+    counted = logs_config(tmp_path, split={"train": 2, "validation": 2, "test": 1})
+    split = load(import_logs(counted)).manifest["split"]
+    assert [len(split[s]) for s in ("train", "validation", "test")] == [2, 2, 1]
 
 
 def test_learners_fit_and_predict_three_inputs_and_persistence_has_its_closed_form(

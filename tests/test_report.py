@@ -146,6 +146,11 @@ def test_a_killed_sweep_counts_the_jobs_it_never_started_and_its_rerun_leaves_no
     failures = (copy / "report" / "failures.csv").read_text().replace('"', "")
     assert f"{killed.name},no metrics.json" in failures
     assert f"{never.name},never started" in failures
+    hydra = next(p for n, p in by_name.items() if "learner=elm_edmd," in n and "seed=0" in n)
+    shutil.move(hydra / ".hydra", tmp_path / "hydra")  # results left, their config lost
+    (lost,) = [r for r in read_runs(copy) if r.path == hydra]
+    assert ".hydra is missing: its results cannot be matched to a config" in str(lost.error)
+    shutil.move(tmp_path / "hydra", hydra / ".hydra")
     (unstarted,) = [r for r in read_runs(copy) if r.error == NEVER_STARTED]
     assert (unstarted.learner, unstarted.seed) == ("elm_edmd", 1)  # named by its overrides
     assert not half_written.exists()  # left by a killed writer: removed once no run holds it
@@ -457,6 +462,8 @@ def test_load_gives_one_row_per_job_controller_and_reference_with_every_metric(
     assert set(means.mean().index.get_level_values("learner")) == {"edmd", "elm_edmd"}
     with pytest.raises(ValueError, match="holds no Hydra job directories"):
         load(tiny_sweep / "report")
+    with pytest.raises(ValueError, match=r"typo does not exist; give a sweep's, a study's"):
+        load(tiny_sweep / "typo")
 
 
 def test_load_gives_the_closed_loops_on_other_plants_rows_of_their_own(

@@ -82,7 +82,7 @@ class LogsConfig:
     m, m, rad) is optional and only drawn. Give ``time`` (s) or ``period_s``; ``model_period_s``
     (default: the sampling period) must be a whole multiple of it: every k-th sample is kept and
     its input held over the model period. ``split`` lists file globs per split, or gives
-    fractions (or counts) that ``seed`` deals the files into.
+    fractions (or whole counts, which must sum to the files) that ``seed`` deals the files into.
     """
 
     name: str = "logs"
@@ -101,6 +101,15 @@ class LogsConfig:
     seed: int = 0
     root: str | None = None  # None: $KOOPMAN_HARNESS_CACHE/datasets (~/.cache/koopman-harness)
     record_every: int = 1  # decimation of the recording only
+    # The plausible range of each state after ``scale`` (SI): a value outside it (a logger's
+    # sentinel such as 999999, a column in km/h read as m/s) is refused naming file and row.
+    state_limits: dict[str, Any] = field(
+        default_factory=lambda: {
+            "vx": [-100.0, 150.0],
+            "vy": [-50.0, 50.0],
+            "yaw_rate": [-10.0, 10.0],
+        }
+    )
 
     def __post_init__(self) -> None:
         # Hydra hands dicts of Column as plain mappings when built without the schema.
@@ -132,6 +141,15 @@ class LogsConfig:
         for key in ("period_s", "model_period_s"):
             if getattr(self, key) is not None:
                 positive(f"data.{key}", getattr(self, key))
+        self.state_limits = {k: list(v) for k, v in dict(self.state_limits).items()}
+        for key, limits in self.state_limits.items():
+            if key not in STATE_NAMES:
+                raise ValueError(
+                    f"data.state_limits.{key}: no such state (states: {', '.join(STATE_NAMES)})"
+                )
+            ok = len(limits) == 2 and all(isinstance(v, int | float) for v in limits)
+            if not ok or not limits[0] < limits[1]:
+                raise ValueError(f"data.state_limits.{key} must be [low, high], low < high")
         self.seed = integer("data.seed", self.seed, 0)
         self.record_every = integer("data.record_every", self.record_every)
         _check_split(self.split)
@@ -143,7 +161,7 @@ class LogsConfig:
     def content(self) -> dict[str, Any]:
         """The fields that determine the episodes (not where the files or the store are)."""
         values = dataclasses.asdict(self)
-        for transient in ("root", "record_every", "name", "path"):
+        for transient in ("root", "record_every", "name", "path", "state_limits"):
             values.pop(transient)
         return values
 
@@ -334,6 +352,16 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
             row, col = int(bad[0][0]), int(bad[0][1])
             name = names[what][col] if what in names else "time"
             raise ValueError(f"has a non-finite {name} ({grid[row, col]}) in data row {row + 1}")
+    for j, name in enumerate(STATE_NAMES):
+        low, high = logs.state_limits.get(name, (-math.inf, math.inf))
+        outside = np.flatnonzero((states[:, j] < low) | (states[:, j] > high))
+        if outside.size:
+            row = int(outside[0])
+            raise ValueError(
+                f"has {name} = {states[row, j]:g} in data row {row + 1}, outside "
+                f"[{low:g}, {high:g}] (data.state_limits.{name}): a logger's sentinel, or a "
+                f"unit to scale (data.states.{name}.scale)?"
+            )
     if len(time_s) < 2:
         raise ValueError(f"has {len(time_s)} rows; a drive needs at least 2")
     steps = np.diff(time_s)
@@ -412,7 +440,15 @@ def split_files(logs: LogsConfig, files: Sequence[Path]) -> dict[str, list[str]]
             chosen[split] = sorted(set(names))
         return chosen
     names = sorted(relative.values())
-    weights = np.array([float(logs.split[s]) for s in SPLITS])
+    given = [logs.split[s] for s in SPLITS]
+    if all(isinstance(v, int) for v in given) and sum(given) != len(names):
+        # Whole numbers are counts of files: taken as proportions they would move files
+        # between splits unasked (2/1/1 of 5 files would have been 3/1/1).
+        raise DatasetError(
+            f"data.split counts {'/'.join(map(str, given))} sum to {sum(given)}, but data.files "
+            f"match {len(names)} files: give counts that sum to {len(names)}, or fractions"
+        )
+    weights = np.array([float(v) for v in given])
     counts = _counts(weights, len(names))
     order = np.random.default_rng([logs.seed, 3]).permutation(len(names))
     shuffled = [names[i] for i in order]
@@ -421,7 +457,8 @@ def split_files(logs: LogsConfig, files: Sequence[Path]) -> dict[str, list[str]]
 
 
 def _counts(weights: np.ndarray, files: int) -> list[int]:
-    """Files per split in proportion to ``weights``, at least one each (largest remainders)."""
+    """Files per split in proportion to ``weights``, at least one each (largest remainders);
+    counts that sum to ``files`` are kept as they are."""
     if files < len(weights):
         raise DatasetError(f"data.split needs at least {len(weights)} files, found {files}")
     exact = weights / weights.sum() * files

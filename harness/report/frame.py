@@ -64,6 +64,9 @@ def read_jobs(path: str | Path) -> list[Run]:
         ValueError: (one line) when ``path`` holds no job.
     """
     path = Path(path)
+    if not path.is_dir():
+        state = "is not a directory" if path.exists() else "does not exist"
+        raise ValueError(f"{path} {state}; give a sweep's, a study's or a job's directory")
     runs = [read_run(path)] if (path / HYDRA_FILE).is_file() else read_runs(path)
     if not runs:
         raise ValueError(f"{path} holds no Hydra job directories ({HYDRA_FILE})")

@@ -234,12 +234,23 @@ def read_runs(sweep_dir: Path) -> list[Run]:
                 multirun.parent / name,
                 overrides=overrides,
                 seed=int(overrides.get("seed", "0")),
-                error=NEVER_STARTED,
+                error=_never_read(multirun.parent / name),
             )
             for name, overrides in jobs
             if overrides not in started and not (multirun.parent / name / HYDRA_FILE).exists()
         ]
     return runs
+
+
+def _never_read(job: Path) -> str:
+    """Why a job of the sweep has no run to read: it never started, or its directory lost
+    ``.hydra/`` (the config its results belong to) while it holds them."""
+    if job.is_dir() and any((job / name).exists() for name in (FINISHED, "metrics.json")):
+        return (
+            f"{job / '.hydra'} is missing: its results cannot be matched to a config; restore "
+            "it or rerun the job"
+        )
+    return NEVER_STARTED
 
 
 def _sweep_of(job: Path) -> Path | None:
