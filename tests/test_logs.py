@@ -122,6 +122,8 @@ def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> No
         ("twice", r"b\.csv has two columns named 'vy' \(columns 2 and 3, 0-based\): rename one"),
         ("sentinel", r"b\.csv has vy = 999999 in data row 8, outside \[-50, 50\] \(data\.state_"),
         ("huge", r"b\.csv has yaw_rate = 1e\+300 in data row 8, outside \[-10, 10\]"),
+        ("header only", r"b\.csv has a header and no data rows"),
+        ("text in a row", r"b\.csv has a first line of numbers and text \(0,54,NA"),
         ("ragged", r"b\.csv is not a table of numbers: Line #21 \(got 6 columns instead of 7\)"),
     ],
 )
@@ -147,6 +149,12 @@ def test_a_bad_log_fails_in_one_line_naming_the_file(
         (tmp_path / "b.csv").write_text(text.replace(",r,", ",yaw,", 1))
     elif damage == "twice":  # the last of two would have won, silently
         (tmp_path / "b.csv").write_text(text.replace(",r,", ",vy,", 1))
+    elif damage == "header only":  # it read as "7 header names for 0 columns"
+        (tmp_path / "b.csv").write_text(text.splitlines()[0] + "\n")
+    elif damage == "text in a row":  # without a header its first row was dropped silently
+        rows = text.splitlines()[1:]
+        rows[0] = ",".join(["0", "54", "NA", *rows[0].split(",")[3:]])
+        (tmp_path / "b.csv").write_text("\n".join(rows) + "\n")
     elif damage == "ragged":  # numpy's reason is on its second line
         lines = text.splitlines()
         lines[20] = lines[20].rsplit(",", 1)[0]
@@ -178,6 +186,16 @@ def test_only_the_configured_columns_are_read_as_numbers(tmp_path: Path) -> None
     config = logs_config(tmp_path, inputs={"steer": "driver", "throttle": "throttle"})
     with pytest.raises(ValueError, match=r"has text, not numbers, in 'driver' for inputs.steer"):
         read_log(tmp_path / "driver.parquet", config)
+
+
+def test_a_loggers_microsecond_jitter_passes_the_period_check_and_the_decimation(
+    tmp_path: Path,
+) -> None:
+    """±4 µs on 10 ms stamps: one tolerance for both checks (the decimation refused it)."""
+    table = drive(0)
+    table[:, 0] += np.random.default_rng(1).uniform(-4e-6, 4e-6, len(table))
+    episode = read_log(write_csv(tmp_path / "jitter.csv", table), logs_config(tmp_path))
+    assert len(episode.time_s) == len(table[::5])
 
 
 def test_a_csv_with_a_byte_order_mark_reads_its_first_column_by_name(tmp_path: Path) -> None:

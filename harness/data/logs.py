@@ -23,6 +23,7 @@ import fnmatch
 import hashlib
 import json
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +51,7 @@ __all__ = ["Column", "LogsConfig", "import_logs", "read_log"]
 
 FORMAT = "logs/1"
 SUFFIXES = (".csv", ".parquet", ".npz", ".mat")
+PERIOD_TOLERANCE = 1e-3  # a sampling step off its period by more than this share is refused
 
 
 @dataclass
@@ -209,7 +211,15 @@ class _Table:
         with self.path.open() as handle:
             first = handle.readline().strip()
         fields = [f.strip().strip('"').lstrip("\ufeff") for f in first.split(",")]
-        header = any(_not_a_number(f) for f in fields)
+        if not first:
+            raise ValueError("is empty")
+        texts = sum(_not_a_number(f) for f in fields)
+        if 0 < texts < len(fields):  # a header names every column; a data row is numbers
+            raise ValueError(
+                f"has a first line of numbers and text ({first[:60]}): a header names every "
+                "column, a data row holds numbers only"
+            )
+        header = texts == len(fields)
         if header:
             seen: dict[str, int] = {}
             for j, name in enumerate(fields):
@@ -220,20 +230,24 @@ class _Table:
                     )
                 seen[name] = j
         try:
-            values = np.genfromtxt(
-                self.path,
-                delimiter=",",
-                skip_header=1 if header else 0,
-                dtype=float,
-                ndmin=2,
-                encoding="utf-8-sig",
-            )
+            with warnings.catch_warnings():  # no rows: said below, in one line
+                warnings.filterwarnings("ignore", message="genfromtxt: Empty input file")
+                values = np.genfromtxt(
+                    self.path,
+                    delimiter=",",
+                    skip_header=1 if header else 0,
+                    dtype=float,
+                    ndmin=2,
+                    encoding="utf-8-sig",
+                )
         except ValueError as error:  # numpy's first line says only "Some errors were detected"
             reasons = [line.strip() for line in str(error).splitlines()[1:] if line.strip()]
             more = f" and {len(reasons) - 1} more" if len(reasons) > 1 else ""
             raise ValueError(
                 f"is not a table of numbers: {reasons[0] if reasons else error}{more}"
             ) from None
+        if values.size == 0 or values.shape[0] == 0:
+            raise ValueError("has a header and no data rows" if header else "has no data rows")
         if header:
             if values.shape[1] != len(fields):
                 raise ValueError(f"has {len(fields)} header names for {values.shape[1]} columns")
@@ -371,7 +385,7 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
             f"has time that does not increase at data row {row + 1} (t = {time_s[row]:g} s)"
         )
     period = float(np.median(steps))
-    if np.max(np.abs(steps - period)) > 1e-3 * period:
+    if np.max(np.abs(steps - period)) > PERIOD_TOLERANCE * period:
         row = int(np.argmax(np.abs(steps - period))) + 1
         raise ValueError(
             f"is not sampled at one period ({period:g} s; {steps[row - 1]:g} s before data row "
@@ -389,7 +403,8 @@ def decimation(period_s: float, model_period_s: float | None) -> int:
         return 1
     ratio = model_period_s / period_s
     k = round(ratio)
-    if k < 1 or abs(ratio - k) > 1e-6 * max(ratio, 1.0):
+    # The sampling period's own tolerance (read_log): a logger's microsecond jitter passes both.
+    if k < 1 or abs(ratio - k) > PERIOD_TOLERANCE * max(ratio, 1.0):
         raise ValueError(
             f"is sampled every {period_s:g} s, which does not divide data.model_period_s = "
             f"{model_period_s:g} s (ratio {ratio:.6g})"
