@@ -28,6 +28,15 @@ CHARACTERIZE_KEYS = {
 }
 
 
+TINY_COLLECTION = (  # task=collect on three short drives
+    "task=collect",
+    "data.episodes=3",
+    "data.min_steps=100",
+    "data.max_steps=150",
+    "data.split={train: 1, validation: 1, test: 1}",
+)
+
+
 def run_harness(
     cwd: Path, *overrides: str, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess:
@@ -93,14 +102,7 @@ def test_an_unknown_plant_is_named_with_the_choices(tmp_path: Path) -> None:
 def test_collect_task_writes_coverage_metrics_figure_and_recording(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     result = run_harness(
-        tmp_path,
-        "task=collect",
-        "data.episodes=3",
-        "data.min_steps=100",
-        "data.max_steps=150",
-        "data.split={train: 1, validation: 1, test: 1}",
-        f"data.root={tmp_path}/datasets",
-        f"hydra.run.dir={run_dir}",
+        tmp_path, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", f"hydra.run.dir={run_dir}"
     )
     assert result.returncode == 0, result.stderr[-2000:]
     data = json.loads((run_dir / "metrics.json").read_text())["data"]
@@ -121,14 +123,7 @@ def test_a_run_into_another_runs_directory_moves_its_results_aside_and_never_mer
     run_dir = tmp_path / "reused"
     shutil.copytree(finished, run_dir)
     result = run_harness(
-        tmp_path,
-        "task=collect",
-        "data.episodes=3",
-        "data.min_steps=100",
-        "data.max_steps=150",
-        "data.split={train: 1, validation: 1, test: 1}",
-        f"data.root={tmp_path}/datasets",
-        f"hydra.run.dir={run_dir}",
+        tmp_path, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", f"hydra.run.dir={run_dir}"
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert set(json.loads((run_dir / "metrics.json").read_text())) == {"data"}

@@ -138,6 +138,21 @@ def _tracking_runs(
                 yield controller, label.split("/", 1)[0], metrics
 
 
+def _tracking_row(
+    job: Run, controller: str, reference: str, metrics: Mapping[str, Any], common: Mapping
+) -> tuple[str, ...]:
+    """A closed loop's row of the tracking and quality tables: learner, controller, Np/Nc,
+    reference, variant."""
+    horizon = metrics.get("horizon") or {}
+    return (
+        job.learner,
+        controller,
+        f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
+        reference,
+        variant(job, common) or "—",
+    )
+
+
 def tracking_table(jobs: list[Run]) -> Table:
     table = Table(
         "DE-MPC tracking RMSE on the plant (SI) and solve time of one control step (ms)",
@@ -164,15 +179,7 @@ def tracking_table(jobs: list[Run]) -> Table:
         tracking = _get(job.metrics, "tracking") or {}
         first = _first_reference(tracking)
         for controller, reference, metrics in _tracking_runs(tracking, job.controller):
-            horizon = metrics.get("horizon") or {}
-            key = (
-                job.learner,
-                controller,
-                f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
-                reference,
-                variant(job, common) or "—",
-            )
-            runs[key].append(metrics)
+            runs[_tracking_row(job, controller, reference, metrics, common)].append(metrics)
         if first is not None:
             firsts.add(first)
     for key, members in sorted(
@@ -235,17 +242,8 @@ def quality_table(jobs: list[Run]) -> Table:
         tracking = _get(job.metrics, "tracking") or {}
         for controller, reference, metrics in _tracking_runs(tracking, job.controller):
             quality = metrics.get("quality")
-            if not isinstance(quality, Mapping):
-                continue
-            horizon = metrics.get("horizon") or {}
-            key = (
-                job.learner,
-                controller,
-                f"{horizon.get('Np', '?')}/{horizon.get('Nc', '?')}",
-                reference,
-                variant(job, common) or "—",
-            )
-            runs[key].append(quality)
+            if isinstance(quality, Mapping):
+                runs[_tracking_row(job, controller, reference, metrics, common)].append(quality)
     for key, members in sorted(runs.items()):
         table.rows.append(
             [*key, str(len(members))] + [_mean_std(m.get(k) for m in members) for k in QUALITY]
