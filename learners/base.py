@@ -20,6 +20,7 @@ includes x"); Deep EDMD with ``lifted_includes_state=false`` is the one exceptio
 from __future__ import annotations
 
 import importlib
+import pickle
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -208,6 +209,14 @@ class KoopmanLearner(Learner, contracts.LiftedModel):
     dynamics: ClassVar[contracts.Dynamics] = "linear"
 
 
+def _first_words(error: BaseException, limit: int = 80) -> str:
+    """An error's first line, cut at a word within ``limit`` characters (never mid-word)."""
+    line = str(error).splitlines()[0] if str(error) else type(error).__name__
+    if len(line) <= limit:
+        return line
+    return line[:limit].rsplit(" ", 1)[0].rstrip(",;:") + " …"
+
+
 def load(
     path: str | Path, *, state_dim: int = STATE_DIM, inputs: Sequence[str] | None = None
 ) -> Learner:
@@ -223,9 +232,13 @@ def load(
     path = Path(path)
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:  # weights_only refused an object: it is not ours
+        raise ValueError(
+            f"{path} is not a learner file (it holds Python objects besides tensors and plain "
+            "data, which could run code; not loaded)"
+        ) from None
     except Exception as error:  # any unreadable file gets the same one-line answer
-        reason = str(error).splitlines()[0][:80] if str(error) else type(error).__name__
-        raise ValueError(f"{path} is not a learner file ({reason})") from None
+        raise ValueError(f"{path} is not a learner file ({_first_words(error)})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ValueError(f"{path} is not a learner file (no '{FORMAT}' header)")
     if payload.get("version") != FORMAT_VERSION:

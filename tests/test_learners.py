@@ -134,10 +134,15 @@ def test_loading_anything_but_a_learner_file_fails_in_one_line(tmp_path: Path) -
     text.write_text("not a model\n")
     tensors = tmp_path / "weights.pt"
     torch.save({"weight": torch.zeros(3)}, tensors)
-    for path in (text, tensors, tmp_path / "missing.pt"):
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"format": "koopman-harness/learner", "run": Path("x")}, foreign)  # an object
+    for path in (text, tensors, tmp_path / "missing.pt", foreign):
         with pytest.raises(ValueError, match="is not a learner file") as info:
             learners.load(path)
         assert "\n" not in str(info.value)
+        assert str(info.value).endswith(")")  # the reason whole, or cut at a word with " …"
+    with pytest.raises(ValueError, match=r"holds Python objects besides tensors .* not loaded\)"):
+        learners.load(foreign)
 
 
 def test_loading_a_model_of_other_sizes_fails_in_one_line(tmp_path: Path) -> None:
@@ -517,3 +522,15 @@ def test_a_model_file_records_what_it_was_trained_on_and_old_files_still_load(
         del payload["provenance"]
 
     assert learners.load(_corrupt(model_files["edmd"], tmp_path / "old.pt", old)).provenance_ == {}
+
+
+def test_a_long_reason_is_cut_at_a_word_never_inside_one() -> None:
+    from learners.base import _first_words
+
+    error = ValueError(
+        "Weights only load failed. In PyTorch 2.6, we changed the default value of the "
+        "weights_only argument\nmore"
+    )
+    cut = _first_words(error)
+    assert cut.endswith(" the …") and len(cut) <= 82
+    assert _first_words(ValueError("short\nsecond line")) == "short"
