@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -79,6 +80,9 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
 def _one_line(error: BaseException) -> str:
     while isinstance(error, InstantiationException) and error.__cause__ is not None:
         error = error.__cause__
+    if isinstance(error, OSError) and error.filename and error.errno in UNWRITABLE:
+        key = "KOOPMAN_HARNESS_CACHE (the caches) or data.root (the datasets)"
+        return unwritable(error, key)
     return f"{type(error).__name__}: {error}".splitlines()[0]
 
 
@@ -147,6 +151,19 @@ def _hold_or_exit(config: DictConfig, key: str) -> None:
         # Hydra turns a callback's exception into a warning and goes on: stop here instead.
         print(f"error: {error}", file=sys.stderr)
         sys.exit(2)
+    except OSError as error:  # a directory that cannot be made or written
+        print(f"error: {unwritable(error, key)}", file=sys.stderr)
+        sys.exit(2)
+
+
+UNWRITABLE = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOTDIR, errno.ENOSPC, errno.EDQUOT}
+
+
+def unwritable(error: OSError, key: str) -> str:
+    """One line for a directory the harness cannot make or write, naming the setting to change:
+    the run's (``key``), the cache's (KOOPMAN_HARNESS_CACHE) or the datasets' (data.root)."""
+    where = error.filename or "a directory"
+    return f"cannot write {where} ({error.strerror or error}): choose another {key}"
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")

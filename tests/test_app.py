@@ -134,6 +134,27 @@ def test_a_run_into_another_runs_directory_moves_its_results_aside_and_never_mer
     assert read_run(run_dir).error is None and set(read_run(run_dir).metrics or {}) == {"data"}
 
 
+def test_a_directory_that_cannot_be_written_is_named_with_the_setting_to_change(
+    tmp_path: Path,
+) -> None:
+    """A run directory or a cache under a file (as a read-only disk, for any user, root too):
+    one line naming the path and the setting, no Hydra callback warning."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    result = run_harness(tmp_path, "task=characterize", f"hydra.run.dir={blocker / 'run'}")
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        f"error: cannot write {blocker / 'run'} (Not a directory): choose another hydra.run.dir"
+    ]
+    env = {**os.environ, "KOOPMAN_HARNESS_CACHE": str(blocker / "cache")}
+    result = run_harness(tmp_path, *TINY_COLLECTION, f"hydra.run.dir={tmp_path / 'run'}", env=env)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1] == (
+        f"error: cannot write {blocker / 'cache'} (Not a directory): choose another "
+        "KOOPMAN_HARNESS_CACHE (the caches) or data.root (the datasets)"
+    )
+
+
 def test_a_long_override_list_still_makes_a_valid_distinct_job_directory() -> None:
     from harness.app import job_dirname
 
