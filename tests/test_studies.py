@@ -61,6 +61,23 @@ def test_a_number_changed_in_a_study_changes_its_tables(tmp_path: Path) -> None:
     assert changed != (DOCS_DIR / f"{study.name}.md").read_text()
 
 
+@pytest.mark.parametrize("damage", ["truncated", "removed"])
+def test_an_incomplete_study_is_not_published(tmp_path: Path, damage: str) -> None:
+    """A job's metrics.json torn, or a seed's directory gone: refused naming the job, nothing
+    written (its tables and the headline would have counted fewer seeds under the same text)."""
+    study = tmp_path / "main_job"
+    shutil.copytree(RESULTS_DIR / "main_job", study)
+    job = study / "dnn_s1"
+    if damage == "truncated":
+        text = (job / "metrics.json").read_text()
+        (job / "metrics.json").write_text(text[: len(text) // 2])
+    else:
+        shutil.rmtree(job)
+    with pytest.raises(ValueError, match=r"main_job is incomplete: .*(dnn_s1|seed=1).*rerun or restore"):
+        render(study, tmp_path / "docs")
+    assert not (tmp_path / "docs").exists()
+
+
 @pytest.mark.parametrize("name", BLOCKS)
 def test_every_generated_table_of_the_readme_and_docs_is_its_studys_data(name: str) -> None:
     study, _, document = BLOCKS[name]

@@ -27,6 +27,7 @@ from harness.core.files import write_text_atomic
 from harness.core.paths import REPO_ROOT
 from harness.report import report
 from harness.report.headline import BLOCKS, update_readme
+from harness.report.jobs import read_runs
 
 __all__ = ["DOCS_DIR", "README", "RESULTS_DIR", "render", "studies"]
 
@@ -41,10 +42,25 @@ def studies(results_dir: Path = RESULTS_DIR) -> list[Path]:
     return sorted(path.parent for path in results_dir.glob(f"*/{DESCRIPTION}"))
 
 
+def check_complete(study: Path) -> None:
+    """A study is published whole or not at all: a job that failed, lost its metrics.json or
+    never ran (its sweep's ``multirun.yaml`` names it) would change the tables and headline
+    under a caption that still counts it."""
+    broken = [run for run in read_runs(study) if run.error or run.metrics is None]
+    if broken:
+        first = broken[0]
+        more = f" and {len(broken) - 1} more" if len(broken) > 1 else ""
+        raise ValueError(
+            f"{study} is incomplete: {first.name} ({first.error or 'no metrics.json'}){more}; "
+            "rerun or restore it before regenerating"
+        )
+
+
 def render(study: Path, docs_dir: Path = DOCS_DIR) -> Path:
     """``docs_dir/<study>.md`` and ``docs_dir/<study>/`` (CSVs, figures) from ``study``'s jobs;
     the report is generated in a scratch copy, so the study folder is only read."""
     name = study.name
+    check_complete(study)
     with tempfile.TemporaryDirectory() as scratch:
         copy = Path(scratch) / name
         shutil.copytree(study, copy, ignore=shutil.ignore_patterns("report", ".report.lock"))
@@ -81,7 +97,11 @@ def main(argv: list[str] | None = None) -> int:
         if not (study / DESCRIPTION).is_file():
             print(f"error: {study} is not a study (no {DESCRIPTION})", file=sys.stderr)
             return 2
-        print(render(study))
+        try:
+            print(render(study))
+        except ValueError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
     documents = {doc for study, _, doc in BLOCKS.values() if RESULTS_DIR / study in chosen}
     for document in sorted(documents):
         changed = update_readme(REPO_ROOT / document, RESULTS_DIR)
