@@ -123,6 +123,7 @@ def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> No
         ("sentinel", r"b\.csv has vy = 999999 in data row 8, outside \[-50, 50\] \(data\.state_"),
         ("huge", r"b\.csv has yaw_rate = 1e\+300 in data row 8, outside \[-10, 10\]"),
         ("header only", r"b\.csv has a header and no data rows"),
+        ("milliseconds", r"b\.csv is sampled every 10 s: is its time in ms or ns\? scale it"),
         ("text in a row", r"b\.csv has a first line of numbers and text \(0,54,NA"),
         ("ragged", r"b\.csv is not a table of numbers: Line #21 \(got 6 columns instead of 7\)"),
     ],
@@ -135,6 +136,8 @@ def test_a_bad_log_fails_in_one_line_naming_the_file(
     table = drive(9)
     if damage == "nan":
         table[7, 2] = np.nan
+    elif damage == "milliseconds":  # read as seconds: "does not divide 0.05"
+        table[:, 0] *= 1000.0
     elif damage == "sentinel":  # a logger's "no value": it ran to the end, RMSE 2.6e3
         table[7, 2] = 999999.0
     elif damage == "huge":  # finite: it crashed the summary after training
@@ -186,6 +189,19 @@ def test_only_the_configured_columns_are_read_as_numbers(tmp_path: Path) -> None
     config = logs_config(tmp_path, inputs={"steer": "driver", "throttle": "throttle"})
     with pytest.raises(ValueError, match=r"has text, not numbers, in 'driver' for inputs.steer"):
         read_log(tmp_path / "driver.parquet", config)
+
+
+def test_a_transposed_matlab_table_is_named_so(tmp_path: Path) -> None:
+    savemat(tmp_path / "rows.mat", {"log": drive(0).T})  # a row per signal
+    config = logs_config(
+        tmp_path,
+        array="log",
+        time={"column": 0},
+        states={"vx": {"column": 1, "scale": 1 / 3.6}, "vy": 2, "yaw_rate": 3},
+        inputs={"steer": 4, "throttle": 5, "brake": 6},
+    )
+    with pytest.raises(ValueError, match=r"has .log. of 7 rows and 400 columns: .*transposed"):
+        read_log(tmp_path / "rows.mat", config)
 
 
 def test_a_loggers_microsecond_jitter_passes_the_period_check_and_the_decimation(

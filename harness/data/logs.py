@@ -286,6 +286,12 @@ class _Table:
             if array not in arrays:
                 raise ValueError(f"has no array {array!r} (it has {', '.join(sorted(arrays))})")
             self.matrix = np.atleast_2d(np.asarray(arrays[array], dtype=float))
+            rows, columns = self.matrix.shape
+            if rows < columns:  # a row per signal: every "column" would be one sample
+                raise ValueError(
+                    f"has {array!r} of {rows} rows and {columns} columns: a table holds a row per "
+                    "sample (transposed? save its transpose)"
+                )
             return
         # A column per variable: 1-D, or a MATLAB column or row vector (T x 1, 1 x T); a
         # variable of text or a struct is kept as it is and refused only if a column names it.
@@ -385,6 +391,11 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
             f"has time that does not increase at data row {row + 1} (t = {time_s[row]:g} s)"
         )
     period = float(np.median(steps))
+    if period >= 1.0:  # no vehicle is logged that slowly: a time column in ms, us or ns
+        raise ValueError(
+            f"is sampled every {period:g} s: is its time in ms or ns? scale it to seconds "
+            "(data.time.scale: 1e-3 for ms, 1e-9 for ns)"
+        )
     if np.max(np.abs(steps - period)) > PERIOD_TOLERANCE * period:
         row = int(np.argmax(np.abs(steps - period))) + 1
         raise ValueError(
