@@ -73,7 +73,8 @@ def test_an_incomplete_study_is_not_published(tmp_path: Path, damage: str) -> No
         (job / "metrics.json").write_text(text[: len(text) // 2])
     else:
         shutil.rmtree(job)
-    with pytest.raises(ValueError, match=r"main_job is incomplete: .*(dnn_s1|seed=1).*rerun or restore"):
+    refused = r"main_job is incomplete: .*(dnn_s1|seed=1).*rerun or restore"
+    with pytest.raises(ValueError, match=refused):
         render(study, tmp_path / "docs")
     assert not (tmp_path / "docs").exists()
 
