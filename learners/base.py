@@ -365,7 +365,8 @@ def _normalizer_problem(values: Mapping[str, Any], n: int, m: int) -> str | None
 
 
 # Training settings that say how long or how a model was trained, not which model it is: a
-# model file trained with another budget still is the configured learner.
+# model file trained with another budget still is the configured learner, and a training may
+# resume from its checkpoint with them changed (learners/trained.py).
 RUN_SETTINGS = (
     "max_steps",
     "max_epochs",

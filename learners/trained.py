@@ -16,6 +16,7 @@ from harness.core.episode import Episode, MinMaxNormalizer
 from learners import training as loop
 from learners.base import (
     INPUT_DIM,
+    RUN_SETTINGS,
     STATE_DIM,
     Dim,
     Learner,
@@ -72,17 +73,6 @@ def _is_size(value: Any) -> bool:
     if isinstance(value, list):
         return bool(value) and all(_is_size(item) for item in value)
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-# Settings that may change between a run and its resumption without changing the result.
-_RESUMABLE = (
-    "max_steps",
-    "max_epochs",
-    "patience",
-    "progress",
-    "num_threads",
-    "checkpoint_every_steps",
-)
 
 
 class TrainedLearner(Learner):
@@ -154,7 +144,7 @@ class TrainedLearner(Learner):
         self.params_.initialize(generator)
         fingerprint = self.hyperparameters
         fingerprint["training"] = {
-            k: v for k, v in fingerprint["training"].items() if k not in _RESUMABLE
+            k: v for k, v in fingerprint["training"].items() if k not in RUN_SETTINGS
         }
         self.history_ = loop.train(
             self.name,

@@ -124,13 +124,7 @@ ALLOWED: dict[str, set[str]] = {
     "harness.output": {"harness.core"},
     "harness.recorder": set(),
     "harness.references": {"harness.core", "harness.output", "harness.recorder"},
-    "harness.data": {
-        "harness.core",
-        "harness.plant",
-        "harness.output",
-        "harness.recorder",
-        "harness.references",
-    },
+    "harness.data": {"harness.core", "harness.plant", "harness.output", "harness.recorder"},
     "harness.evaluation": {
         "harness.core",
         "harness.plant",

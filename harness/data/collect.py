@@ -11,13 +11,13 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from harness.core.contracts import Reference
 from harness.data import coverage
 from harness.data.driver import DriverKnowledge
 from harness.data.logs import LogsConfig, import_logs
 from harness.data.store import DataConfig, Dataset, collect_counted, load
 from harness.plant import Sedan
 from harness.recorder import Recorder
-from harness.references import Reference
 
 log = logging.getLogger(__name__)
 
