@@ -140,6 +140,18 @@ def test_a_window_too_short_to_predict_anything_is_refused_before_training(
     assert not (run_dir / "model_edmd.pt").exists()  # refused before the fit
 
 
+def test_a_window_as_long_as_a_test_drive_is_said_in_a_warning(
+    edmd_run, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The tiny drives last 3-4 s: the default 10 s window is each whole drive, said so."""
+    tmp, _, _ = edmd_run
+    with caplog.at_level("WARNING", logger="harness.tasks.pipeline"):
+        run_main(tmp, tmp / "long_window", "learner=edmd", "task.prediction_window_s=[10.0,1.0]")
+    said = [r.getMessage() for r in caplog.records if "prediction_window_s" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("task.prediction_window_s 10 s is as long as")
+    assert "its rmse_window_10s is the whole drive's" in said[0]
+
+
 def test_a_run_says_what_each_phase_did_and_how_long_it_took(
     edmd_run, caplog: pytest.LogCaptureFixture
 ) -> None:

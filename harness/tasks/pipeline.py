@@ -172,7 +172,7 @@ class Pipeline:
             dataset, data_metrics = prepare(plant, self.data, recorder, output_dir)
             phase.done = data_done(self.data.name, data_metrics)
         logs = dataset.from_logs
-        check_windows(self.windows_s, dataset.period_s)
+        check_windows(self.windows_s, dataset.period_s, dataset.test)
         on_plant = not logs or self.logs_from_plant
         if logs and self.logs_from_plant:
             check_logs_drive(plant, dataset, self.data.name)
@@ -604,14 +604,27 @@ class Pipeline:
         return result
 
 
-def check_windows(windows_s: Sequence[float], period_s: float) -> None:
+def check_windows(windows_s: Sequence[float], period_s: float, test: Sequence[Episode]) -> None:
     """Every window of task.prediction_window_s at least two of the data's periods (one step
-    is the measured state only: its RMSE would be empty), checked before training."""
+    is the measured state only: its RMSE would be empty), checked before training; a window as
+    long as a test drive is said in a warning (its RMSE is the whole drive's under a window's
+    name)."""
+    shortest = min(test, key=len, default=None)
     for window in windows_s:
         if round(window / period_s) < 2:
             raise ValueError(
                 f"task.prediction_window_s {window:g} s is under two of the data's periods "
                 f"({period_s:g} s): no step to predict; make it >= {2 * period_s:g} s"
+            )
+        if shortest is not None and round(window / period_s) >= len(shortest):
+            log.warning(
+                "task.prediction_window_s %g s is as long as the test drive %s (%g s) or longer: "
+                "its rmse_window_%gs is the whole drive's; shorten the window or test on longer "
+                "drives",
+                window,
+                shortest.name,
+                (len(shortest) - 1) * period_s,
+                window,
             )
 
 
