@@ -138,6 +138,9 @@ def _tracking_runs(
                 yield controller, label.split("/", 1)[0], metrics
 
 
+CLOSED_LOOP_COLUMNS = ("learner", "controller", "Np/Nc", "reference", "variant", "jobs")
+
+
 def _tracking_row(
     job: Run, controller: str, reference: str, metrics: Mapping[str, Any], common: Mapping
 ) -> tuple[str, ...]:
@@ -157,12 +160,7 @@ def tracking_table(jobs: list[Run]) -> Table:
     table = Table(
         "DE-MPC tracking RMSE on the plant (SI) and solve time of one control step (ms)",
         [
-            "learner",
-            "controller",
-            "Np/Nc",
-            "reference",
-            "variant",
-            "jobs",
+            *CLOSED_LOOP_COLUMNS,
             *STATES,
             "final error vx / vy / r",
             "solve median",
@@ -219,12 +217,7 @@ def quality_table(jobs: list[Run]) -> Table:
         "changes a minute and time on the brake, jerk (m/s³), peak lateral acceleration (m/s²), "
         "steps at the increment bound (share)",
         [
-            "learner",
-            "controller",
-            "Np/Nc",
-            "reference",
-            "variant",
-            "jobs",
+            *CLOSED_LOOP_COLUMNS,
             "reversals /min",
             "wheel rate RMS",
             "throttle-brake /min",
