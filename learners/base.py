@@ -478,11 +478,12 @@ def check_varied(train: Sequence[Episode], learner: str) -> None:
         if constant.size:
             column = int(constant[0])
             name = names[column] if values.shape[1] == len(names) else f"{field}[{column}]"
+            drives = ", ".join(e.name for e in train[:3]) + (", ..." if len(train) > 3 else "")
             raise ValueError(
-                f"{learner} cannot learn from the training drives: {name} stays at "
+                f"{learner} cannot learn from the training drives ({drives}): {name} stays at "
                 f"{low[column]:.6g} (range {high[column] - low[column]:.1e} over {len(values)} "
-                f"frames), so what it does is not in the data; collect drives that vary {name} "
-                "(data.driver.*)"
+                f"frames), so what it does is not in the data; train on drives that vary {name} "
+                "(collected: data.driver.*; logs: the files of data.split.train)"
             )
 
 

@@ -291,6 +291,10 @@ def test_a_dataset_in_which_the_car_never_moved_is_refused(tmp_path: Path) -> No
     dataset = Dataset(tmp_path, {}, train, train, train, MinMaxNormalizer.fit(train))
     with pytest.raises(ValueError, match=r"never reached 1.0 m/s.*plant.chassis.sprung_mass_kg"):
         check_training_data(dataset)
+    # Logs of a car that stood: the hint is the logs' column and split, not a plant's keys.
+    logs = Dataset(tmp_path, {"source": "logs"}, train, train, train, MinMaxNormalizer.fit(train))
+    with pytest.raises(ValueError, match=r"logs' vx column .*data.split.train \(episode_0000\)$"):
+        check_training_data(logs)
 
 
 def test_edmd_refuses_fewer_pairs_than_unknowns() -> None:
@@ -317,10 +321,12 @@ def test_drives_in_which_an_input_never_varied_are_refused_by_every_learner(lear
         train.append(Episode(episode.name, episode.time_s, episode.states, inputs, episode.poses))
     with pytest.raises(ValueError) as info:
         learner.fit(train, [], MinMaxNormalizer.fit(train))
+    names = ", ".join(e.name for e in train)
     assert str(info.value).startswith(
-        f"{learner.name} cannot learn from the training drives: pedal stays at 0.1 (range 1.0e-09"
+        f"{learner.name} cannot learn from the training drives ({names}): pedal stays at 0.1 "
+        "(range 1.0e-09"
     )
-    assert "collect drives that vary pedal" in str(info.value)
+    assert "train on drives that vary pedal (collected: data.driver.*; logs:" in str(info.value)
 
 
 # -- a model file is the configured learner, or refused (point 8) -----------------------------

@@ -634,10 +634,17 @@ def check_training_data(dataset: Dataset) -> None:
     fastest = max(float(abs(e.states[:, 0]).max()) for e in dataset.train)
     if fastest < MIN_TRAIN_SPEED_MPS:
         frames = sum(len(e) for e in dataset.train)
+        check = (
+            "check the logs' vx column and its scale (data.states.vx) and the files of "
+            f"data.split.train ({', '.join(e.name for e in dataset.train[:3])}"
+            f"{', ...' if len(dataset.train) > 3 else ''})"
+            if dataset.from_logs
+            else "check the plant's keys (plant.chassis.sprung_mass_kg, plant.powertrain.*, "
+            "plant.brakes.*) and data.min_steps"
+        )
         raise ValueError(
             f"data: the car never reached {MIN_TRAIN_SPEED_MPS} m/s in the {frames} training "
-            f"frames of {dataset.path} (fastest {fastest:.3g} m/s): check the plant's keys "
-            "(plant.chassis.sprung_mass_kg, plant.powertrain.*, plant.brakes.*) and data.min_steps"
+            f"frames of {dataset.path} (fastest {fastest:.3g} m/s): {check}"
         )
 
 
