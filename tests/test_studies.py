@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -59,6 +60,17 @@ def test_a_number_changed_in_a_study_changes_its_tables(tmp_path: Path) -> None:
     (job / "metrics.json").write_text(json.dumps(metrics))
     changed = render(study, tmp_path / "docs").read_text()
     assert changed != (DOCS_DIR / f"{study.name}.md").read_text()
+
+
+def test_no_generated_page_holds_a_path_outside_the_repository() -> None:
+    """The report is rendered in a scratch copy: none of its paths may leak into the pages."""
+    scratch = tempfile.gettempdir()
+    leaked = [
+        path
+        for path in sorted(DOCS_DIR.rglob("*"))
+        if path.suffix in (".md", ".csv") and scratch in path.read_text()
+    ]
+    assert not leaked, f"{scratch} in {leaked[:3]}"
 
 
 @pytest.mark.parametrize("damage", ["truncated", "removed"])
