@@ -123,6 +123,7 @@ def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> No
         ("sentinel", r"b\.csv has vy = 999999 in data row 8, outside \[-50, 50\] \(data\.state_"),
         ("huge", r"b\.csv has yaw_rate = 1e\+300 in data row 8, outside \[-10, 10\]"),
         ("header only", r"b\.csv has a header and no data rows"),
+        ("two rows", r"b\.csv has 2 rows, 1 at the model period \(0\.05 s\): a drive needs at"),
         ("milliseconds", r"b\.csv is sampled every 10 s: is its time in ms or ns\? scale it"),
         ("text in a row", r"b\.csv has a first line of numbers and text \(0,54,NA"),
         ("ragged", r"b\.csv is not a table of numbers: Line #21 \(got 6 columns instead of 7\)"),
@@ -152,6 +153,8 @@ def test_a_bad_log_fails_in_one_line_naming_the_file(
         (tmp_path / "b.csv").write_text(text.replace(",r,", ",yaw,", 1))
     elif damage == "twice":  # the last of two would have won, silently
         (tmp_path / "b.csv").write_text(text.replace(",r,", ",vy,", 1))
+    elif damage == "two rows":  # it read as "model period nan s" of the other logs
+        (tmp_path / "b.csv").write_text("\n".join(text.splitlines()[:3]) + "\n")
     elif damage == "header only":  # it read as "7 header names for 0 columns"
         (tmp_path / "b.csv").write_text(text.splitlines()[0] + "\n")
     elif damage == "text in a row":  # without a header its first row was dropped silently

@@ -403,6 +403,11 @@ def read_log(path: Path, logs: LogsConfig) -> Episode:
             f"{row + 1}): resample it"
         )
     every = decimation(period, logs.model_period_s)
+    if (len(time_s) + every - 1) // every < 2:  # one sample: no step to learn, no period
+        raise ValueError(
+            f"has {len(time_s)} rows, {(len(time_s) + every - 1) // every} at the model period "
+            f"({period * every:g} s): a drive needs at least 2"
+        )
     kept = slice(0, None, every)
     time_s = time_s[kept] - time_s[0]
     return Episode(path.stem, time_s, states[kept], inputs[kept], poses[kept], logs.channels)
