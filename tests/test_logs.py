@@ -59,6 +59,17 @@ def logs_config(path: Path, **changes: object) -> LogsConfig:
     return LogsConfig(**(values | changes))  # type: ignore[arg-type]
 
 
+def logs_by_index(path: Path) -> LogsConfig:
+    """The same columns as :func:`logs_config`'s, by index into the table ``log``."""
+    return logs_config(
+        path,
+        array="log",
+        time={"column": 0},
+        states={"vx": {"column": 1, "scale": 1 / 3.6}, "vy": 2, "yaw_rate": 3},
+        inputs={"steer": 4, "throttle": 5, "brake": 6},
+    )
+
+
 def write_csv(path: Path, table: np.ndarray, header: bool = True) -> Path:
     text = ",".join(COLUMNS) + "\n" if header else ""
     text += "\n".join(",".join(f"{v:.17g}" for v in row) for row in table) + "\n"
@@ -82,13 +93,7 @@ def test_a_log_in_every_format_reads_as_the_arrays_written(tmp_path: Path) -> No
     np.savez(tmp_path / "matrix.npz", log=table)
     savemat(tmp_path / "matrix.mat", {"log": table})
     by_name = logs_config(tmp_path)
-    by_index = logs_config(
-        tmp_path,
-        array="log",
-        time={"column": 0},
-        states={"vx": {"column": 1, "scale": 1 / 3.6}, "vy": 2, "yaw_rate": 3},
-        inputs={"steer": 4, "throttle": 5, "brake": 6},
-    )
+    by_index = logs_by_index(tmp_path)
     cases = [
         ("named.csv", by_name),
         ("plain.csv", by_index),
@@ -196,13 +201,7 @@ def test_only_the_configured_columns_are_read_as_numbers(tmp_path: Path) -> None
 
 def test_a_transposed_matlab_table_is_named_so(tmp_path: Path) -> None:
     savemat(tmp_path / "rows.mat", {"log": drive(0).T})  # a row per signal
-    config = logs_config(
-        tmp_path,
-        array="log",
-        time={"column": 0},
-        states={"vx": {"column": 1, "scale": 1 / 3.6}, "vy": 2, "yaw_rate": 3},
-        inputs={"steer": 4, "throttle": 5, "brake": 6},
-    )
+    config = logs_by_index(tmp_path)
     with pytest.raises(ValueError, match=r"has .log. of 7 rows and 400 columns: .*transposed"):
         read_log(tmp_path / "rows.mat", config)
 
