@@ -9,6 +9,7 @@ import os
 import sys
 import time
 import traceback
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -213,13 +214,15 @@ RESULTS = ("metrics.json", FINISHED, "error.json")  # a run was here that ended 
 KEPT = (".lock", ".log", ".ckpt")  # the lock, Hydra's log of this job, training checkpoints
 
 
-def move_previous_results(output_dir: Path) -> Path | None:
+def move_previous_results(output_dir: Path, inputs: Sequence[Path] = ()) -> Path | None:
     """Where the files a run before this one left in ``output_dir`` went (``previous/<time>/``),
     or None when no run ended there. Its metrics.json, finished.json, error.json, figures,
     arrays, recordings and model move; the training checkpoints (a killed run resumes from
-    them), Hydra's ``.hydra/`` and log, and the lock stay."""
+    them), Hydra's ``.hydra/`` and log, the lock, and ``inputs`` (files this run reads: a model
+    file of ``task.model_path`` left there) stay."""
     if not any((output_dir / name).exists() for name in RESULTS):
         return None
+    kept = {Path(p).resolve() for p in inputs}
     stamp = time.strftime("%Y%m%dT%H%M%S")
     target = output_dir / PREVIOUS / stamp
     suffix = 1
@@ -227,7 +230,7 @@ def move_previous_results(output_dir: Path) -> Path | None:
         target, suffix = output_dir / PREVIOUS / f"{stamp}_{suffix}", suffix + 1
     target.mkdir(parents=True)
     for path in sorted(output_dir.iterdir()):
-        if path.is_file() and not path.name.endswith(KEPT):
+        if path.is_file() and not path.name.endswith(KEPT) and path.resolve() not in kept:
             path.rename(target / path.name)
     return target
 
@@ -242,7 +245,8 @@ def _run_and_record(cfg: DictConfig, output_dir: Path, multirun: bool) -> None:
             output_dir / FINISHED,
         )
         return
-    moved = move_previous_results(output_dir)
+    model_path = OmegaConf.select(cfg, "task.model_path", default=None)
+    moved = move_previous_results(output_dir, [Path(model_path)] if model_path else [])
     if moved is not None:
         log.warning(
             "%s held the results of another run (another config, a failure or a rerun): moved "

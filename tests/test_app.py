@@ -288,3 +288,21 @@ def test_the_same_seed_gives_the_same_numbers_whatever_the_environments_threads(
         tracked = metrics["tracking"]
         numbers.append((metrics["prediction"], tracked["rmse"], tracked["final_error"]))
     assert numbers[0] == numbers[1] == numbers[2]
+
+
+def test_a_model_file_the_new_run_reads_stays_where_it_is(tmp_path: Path) -> None:
+    """``task.model_path`` into the directory it lies in: the earlier run's results move aside,
+    the model file this run loads does not."""
+    from harness.app import move_previous_results
+
+    for name in ("metrics.json", "finished.json", "model_edmd.pt", "prediction.png", "app.log"):
+        (tmp_path / name).write_text(name)
+    moved = move_previous_results(tmp_path, [tmp_path / "model_edmd.pt"])
+    assert moved is not None
+    assert sorted(p.name for p in moved.iterdir()) == [
+        "finished.json",
+        "metrics.json",
+        "prediction.png",
+    ]
+    assert (tmp_path / "model_edmd.pt").exists() and (tmp_path / "app.log").exists()
+    assert move_previous_results(tmp_path) is None  # nothing of a finished run is left
