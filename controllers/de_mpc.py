@@ -39,7 +39,7 @@ from controllers.blas import single_threaded
 from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
 from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
-from controllers.pedal_sides import PedalSides
+from controllers.pedal_sides import PEDAL, PedalSides
 from harness.core.budget import check_memory
 from harness.core.checks import (
     boolean,
@@ -69,7 +69,6 @@ log = logging.getLogger(__name__)
 MODEL_NOT_FINITE = "model_not_finite"
 
 STATES, INPUTS = 3, 2
-PEDAL = 1  # the pedal's column of the inputs (steer_wheel_deg, pedal)
 # The brake's release (DEMPCConfig.release_brake): below what speed a plan that brakes may be
 # released (a brake acts at speed, and a linearisation there is right: only near a stop does its
 # effect vanish), and how far the reference's speed must lie above the car's (m/s).

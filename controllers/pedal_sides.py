@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-PEDAL = 1  # the pedal's column of the inputs (steer_wheel_deg, pedal)
+from harness.core.contracts import INPUT_NAMES
+
+PEDAL = INPUT_NAMES.index("pedal")  # the pedal's column of the inputs (steer_wheel_deg, pedal)
 
 
 class PedalSides:
