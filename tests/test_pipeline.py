@@ -71,6 +71,14 @@ def test_metrics_follow_the_public_contract(edmd_run) -> None:
     (test_episode,) = metrics["data"]["split"]["test"]
     rmse = metrics["prediction"][test_episode]["rmse"]
     assert set(rmse) == {"vx", "vy", "yaw_rate"} and all(v >= 0 for v in rmse.values())
+    # The verdict against the state held, per window and state, read off the two RMSEs.
+    prediction = metrics["prediction"][test_episode]
+    held = metrics["prediction"]["persistence"][test_episode]
+    verdicts = prediction["beats_persistence"]
+    assert set(verdicts) == {"open_loop", "41_steps", "10s", "3s", "1.5s"}
+    for state, beats in verdicts["3s"].items():
+        assert beats == (prediction["rmse_window_3s"][state] < held["rmse_window_3s"][state])
+    assert "diverged_at_s" in prediction
     tracking = metrics["tracking"]
     assert set(tracking["rmse"]) == {"vx", "vy", "yaw_rate"}
     assert set(tracking["solve_time_ms"]) == {"median", "p99", "max"}
@@ -138,6 +146,15 @@ def test_a_window_too_short_to_predict_anything_is_refused_before_training(
     with pytest.raises((ValueError, InstantiationException), match=message):
         run_main(tmp, run_dir, "learner=edmd", override)
     assert not (run_dir / "model_edmd.pt").exists()  # refused before the fit
+
+
+def test_an_envelope_that_flags_every_prediction_is_refused_before_training(edmd_run) -> None:
+    tmp, _, _ = edmd_run
+    run_dir = tmp / "no_envelope"
+    message = r"task\.prediction_envelope_spans must be a number > 0"
+    with pytest.raises((ValueError, InstantiationException), match=message):
+        run_main(tmp, run_dir, "learner=edmd", "task.prediction_envelope_spans=0")
+    assert not (run_dir / "model_edmd.pt").exists()
 
 
 def test_a_window_as_long_as_a_test_drive_is_said_in_a_warning(
@@ -426,6 +443,7 @@ def test_persistence_as_the_learner_skips_its_controller_not_the_baseline(tmp_pa
     prediction = metrics["prediction"]
     for episode, held in prediction["persistence"].items():
         assert prediction[episode]["rmse"] == held["rmse"]
+        assert "beats_persistence" not in prediction[episode]  # no verdict on itself
 
 
 def test_a_later_job_reuses_the_baselines_runs_and_names_the_job_that_drove_them(

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 from harness.core.episode import Episode, MinMaxNormalizer
-from harness.evaluation.prediction import by_episode, evaluate, robustness, windowed
+from harness.evaluation.prediction import (
+    ENVELOPE_SPANS,
+    beats_persistence,
+    by_episode,
+    envelope_exit,
+    evaluate,
+    robustness,
+    window_name,
+    windowed,
+)
 from harness.recorder import Recorder
 from learners import DNN, EDMD, Learner, ThinPlateRBF
 from tests.helpers import synthetic_episodes
@@ -78,8 +87,9 @@ def test_a_perfect_model_has_zero_rmse_in_every_metric() -> None:
     exact = EDMD(ThinPlateRBF(0), include_constant=False, ridge=0.0).fit(episodes, [], NORMALIZER)
     results = evaluate({"exact": exact}, [test], window_steps=41, window_seconds=5.0)
     metrics = results["exact"]["test"]
-    assert set(metrics) == {"diverged", "rmse", "rmse_window_41", "rmse_window_5s"}
+    assert set(metrics) == {"diverged", "diverged_at_s", "rmse", "rmse_window_41", "rmse_window_5s"}
     assert metrics.pop("diverged") is False
+    assert metrics.pop("diverged_at_s") is None
     for values in metrics.values():
         assert set(values) == {"vx", "vy", "yaw_rate"}
         assert max(values.values()) < 1e-9
@@ -103,6 +113,7 @@ def test_a_constant_offset_is_the_rmse_of_every_metric() -> None:
     test = linear_episode("test", 500, 1)
     metrics = evaluate({"shifted": Shifted(exact)}, [test], window_steps=41, window_seconds=1.0)
     assert metrics["shifted"]["test"].pop("diverged") is False
+    assert metrics["shifted"]["test"].pop("diverged_at_s") is None
     for values in metrics["shifted"]["test"].values():
         np.testing.assert_allclose(list(values.values()), np.abs(offset), rtol=1e-6)
 
@@ -164,12 +175,17 @@ def test_a_diverging_model_reports_inf_not_nan_and_says_which_diverged_where(
             out[..., 5:, :] = np.nan
             return out
 
-    metrics = evaluate({"bad": Diverges()}, [linear_episode("e", 50, 5)])["bad"]["e"]
+    episode = linear_episode("e", 50, 5)
+    metrics = evaluate({"bad": Diverges()}, [episode])["bad"]["e"]
     assert metrics["rmse"] == {"vx": np.inf, "vy": np.inf, "yaw_rate": np.inf}
     assert metrics["diverged"] is True
+    assert metrics["diverged_at_s"] == pytest.approx(episode.time_s[5])
+    # Until then it held its start: the RMSE of rows 1..4 against the measured drive.
+    until = np.sqrt(np.mean((episode.states[1:5] - episode.states[0]) ** 2, axis=0))
+    np.testing.assert_allclose(list(metrics["rmse_until_diverged"].values()), until, rtol=1e-12)
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert warning.startswith(
-        "prediction: bad's open-loop prediction of e is not finite from t = 0.05 s on (45 of 50"
+        "prediction: bad's open-loop prediction of e is not finite from t = 0.05 s on: it diverged"
     )
 
 
@@ -213,28 +229,95 @@ def test_robustness_of_a_trained_dnn_spreads_and_refuses_models_without_the_laye
         robustness({"edmd": EDMD(ThinPlateRBF(5)).fit(episodes[:2], [], normalizer)}, episodes[2:])
 
 
-def test_a_rollout_far_outside_the_training_range_is_flagged_diverged_though_finite() -> None:
-    """Finite but 10 training ranges away is a model that ran off, not one that predicts badly;
-    a prediction just outside the range (an honest extrapolation) is not flagged."""
+class RunsAway(Hold):
+    """Holds its start, then jumps to ``factor`` training spans above the training range at
+    row ``row`` (a spin-out the data never showed)."""
+
+    def __init__(self, factor: float, row: int = -1) -> None:
+        super().__init__()
+        self.factor, self.row = factor, row
+
+    def fit(self, train, validation, normalizer):
+        self.normalizer_ = normalizer
+        return self
+
+    def predict(self, x0, inputs):
+        out = super().predict(x0, inputs).astype(float)
+        span = self.normalizer_.state_max - self.normalizer_.state_min
+        out[..., self.row :, 1] = self.normalizer_.state_max[1] + self.factor * span[1]
+        return out
+
+
+def test_a_rollout_outside_the_datas_envelope_is_flagged_diverged_though_finite() -> None:
+    """Half a training span past the range (the envelope is twice the range) is a model that
+    ran off; a prediction just outside the range (an honest extrapolation) is not flagged, and
+    how far counts as diverged is a setting."""
     episode = linear_episode("e", 50, 5)
-
-    class RunsAway(Hold):
-        def __init__(self, factor: float) -> None:
-            super().__init__()
-            self.factor = factor
-
-        def fit(self, train, validation, normalizer):
-            self.normalizer_ = normalizer
-            return self
-
-        def predict(self, x0, inputs):
-            out = super().predict(x0, inputs).astype(float)
-            span = self.normalizer_.state_max - self.normalizer_.state_min
-            out[..., -1, :] = self.normalizer_.state_max + self.factor * span
-            return out
-
+    normalizer = MinMaxNormalizer.fit([episode])
     flags = {}
-    for factor in (0.5, 10.5):
-        model = RunsAway(factor).fit([episode], [], MinMaxNormalizer.fit([episode]))
+    for factor in (0.9 * ENVELOPE_SPANS, 1.1 * ENVELOPE_SPANS):
+        model = RunsAway(factor).fit([episode], [], normalizer)
         flags[factor] = evaluate({"m": model}, [episode])["m"]["e"]["diverged"]
-    assert flags == {0.5: False, 10.5: True}
+    assert flags == {0.9 * ENVELOPE_SPANS: False, 1.1 * ENVELOPE_SPANS: True}
+    wider = evaluate(
+        {"m": RunsAway(1.1 * ENVELOPE_SPANS).fit([], [], normalizer)},
+        [episode],
+        envelope_spans=2 * ENVELOPE_SPANS,
+    )
+    assert wider["m"]["e"]["diverged"] is False
+
+
+def test_a_model_made_to_spin_is_flagged_from_then_on_with_its_rmse_until_then(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    episode = linear_episode("e", 80, 5)
+    spins = RunsAway(3.0, row=30).fit([episode], [], MinMaxNormalizer.fit([episode]))
+    metrics = evaluate({"spins": spins}, [episode])["spins"]["e"]
+    assert metrics["diverged"] is True
+    assert metrics["diverged_at_s"] == pytest.approx(episode.time_s[30])
+    assert np.isfinite(metrics["rmse"]["vy"])  # finite, so only the envelope could tell
+    held = np.sqrt(np.mean((episode.states[1:30] - episode.states[0]) ** 2, axis=0))
+    np.testing.assert_allclose(list(metrics["rmse_until_diverged"].values()), held, rtol=1e-12)
+    assert metrics["rmse_until_diverged"]["vy"] < metrics["rmse"]["vy"]
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "leaves the training data's envelope (vx" in warning and "t = 0.30 s" in warning
+
+
+def test_a_drive_beyond_the_training_range_stretches_the_envelope() -> None:
+    """A test drive faster than any training drive, predicted exactly, is not a spin-out."""
+    train, test = linear_episode("train", 50, 5), linear_episode("test", 50, 6)
+    span = np.ptp(train.states, axis=0)
+    faster = dataclasses.replace(test, states=test.states + train.states.max(0) + 2 * span)
+
+    model = Hold()
+    model.normalizer_ = MinMaxNormalizer.fit([train])  # type: ignore[attr-defined]
+    assert envelope_exit(model, faster.states, measured=faster.states) is None
+    assert envelope_exit(model, faster.states) == 0  # against the training range alone: out
+
+
+def test_window_names_say_which_window_a_verdict_is_for() -> None:
+    assert window_name("rmse") == "open_loop"
+    assert window_name("rmse_window_41") == "41_steps"
+    assert window_name("rmse_window_1.5s") == "1.5s"
+
+
+def test_beating_persistence_is_a_lower_rmse_on_the_same_drive_state_by_state() -> None:
+    result = {
+        "diverged": False,
+        "rmse": {"vx": 0.5, "vy": 0.2, "yaw_rate": float("inf")},
+        "rmse_window_3s": {"vx": 0.1, "vy": 0.05, "yaw_rate": 0.01},
+    }
+    held = {
+        "diverged": False,
+        "rmse": {"vx": 1.0, "vy": 0.2, "yaw_rate": 0.1},  # a tie does not beat it
+        "rmse_window_3s": {"vx": 0.2, "vy": 0.01, "yaw_rate": None},
+    }
+    assert beats_persistence(result, held) == {
+        "open_loop": {"vx": True, "vy": False, "yaw_rate": False},
+        "3s": {"vx": True, "vy": False, "yaw_rate": None},  # persistence has no number
+    }
+    # A whole-drive rollout that ran away beats nothing there, whatever its RMSE says.
+    ran_away = result | {"diverged": True, "rmse_until_diverged": {"vx": 0.1}}
+    assert beats_persistence(ran_away, held)["open_loop"] == dict.fromkeys(
+        ("vx", "vy", "yaw_rate"), False
+    )

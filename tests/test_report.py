@@ -36,6 +36,9 @@ def sweep(tmp: Path, sweep_dir: Path, *overrides: str) -> subprocess.CompletedPr
             "harness",
             "-m",
             *TINY,
+            # Tiny drives span little: one tiny EDMD leaves their envelope, which is not these
+            # tests' subject (tests/test_prediction.py's is); a wide one keeps every seed in.
+            "task.prediction_envelope_spans=10",
             f"data.root={tmp}/datasets",
             f"hydra.sweep.dir={sweep_dir}",
             *overrides,
@@ -571,6 +574,48 @@ def test_the_quality_table_averages_how_smoothly_each_controller_drove_over_seed
     assert row[:6] == ["deep_edmd", "main", "60/50", "double_lane_change", "—", "2"]
     assert row[6] == "70 ± 14" and row[10] == "1.5 ± 0.71"
     assert quality_table([_job("edmd", 0, {"tracking": {"rmse": {"vx": 0.1}}})]).rows == []
+
+
+def test_the_prediction_table_marks_each_state_where_a_learner_does_not_beat_persistence() -> None:
+    def job(seed: int, vy_beats: bool) -> Run:
+        rmse = {"vx": 1.0, "vy": 0.25, "yaw_rate": 0.01}
+        verdicts = {"open_loop": {"vx": True, "vy": vy_beats, "yaw_rate": True}}
+        episode = {"rmse": rmse, "diverged": False, "beats_persistence": verdicts}
+        return _job("edmd", seed, {"prediction": {"run_1": episode}})
+
+    always = prediction_table([job(0, False), job(1, False)]).rows[0]
+    assert always[5] == "1 ± 0"  # vx beats it: no mark
+    assert always[6] == "0.25 ± 0 (worse than persistence)"
+    once = prediction_table([job(0, True), job(1, False), job(2, True)]).rows[0]
+    assert once[6] == "0.25 ± 0 (worse than persistence in 1 of 3)"
+    # The verdict is per window: the 3 s table reads its own (none here: no mark).
+    assert "worse" not in " ".join(prediction_table([job(0, False)], "rmse_window_3s").rows[0])
+
+
+def test_the_summary_names_the_states_and_windows_where_persistence_was_not_beaten() -> None:
+    rmse = {"vx": 0.5, "vy": 0.05, "yaw_rate": 0.02}
+    verdicts = {
+        "open_loop": {"vx": True, "vy": False, "yaw_rate": True},
+        "41_steps": {"vx": False, "vy": True, "yaw_rate": True},
+        "1.5s": {"vx": False, "vy": False, "yaw_rate": None},
+    }
+    beaten = {"rmse": rmse, "beats_persistence": verdicts}
+    spun = {
+        "rmse": rmse,
+        "diverged": True,
+        "diverged_at_s": 90.24,
+        "rmse_until_diverged": {"vx": 0.3, "vy": 0.04, "yaw_rate": 0.01},
+        "beats_persistence": {"open_loop": dict.fromkeys(("vx", "vy", "yaw_rate"), True)},
+    }
+    lines = summary({"prediction": {"lap_1": beaten, "lap_2": spun}}).splitlines()
+    assert lines[1] == (
+        "    not better than persistence on vx (41-step windows, 1.5 s windows), "
+        "vy (open loop, 1.5 s windows)"
+    )
+    assert lines[2].endswith(
+        "0.5 / 0.05 / 0.02 (diverged at t = 90.2 s; until then 0.3 / 0.04 / 0.01)"
+    )
+    assert len(lines) == 3  # a drive that beats it everywhere has no such line
 
 
 def test_the_summary_prints_a_value_the_run_could_not_compute_and_says_when_solves_failed() -> None:

@@ -120,6 +120,29 @@ def test_the_logs_table_counts_a_diverged_seed_instead_of_averaging_it(tmp_path:
     assert after.split("**whole runs**")[0] == before.split("**whole runs**")[0]
 
 
+def test_the_logs_table_counts_the_runs_that_do_not_beat_persistence(tmp_path: Path) -> None:
+    """A verdict in one job's metrics marks its learner's cell of that window and state, and
+    nothing else: jobs without the verdict (before it existed) read as they did."""
+    source = RESULTS_DIR / BLOCKS["logs"][0]
+    study = tmp_path / source.name
+    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    before = logs(study)
+    job = study / "edmd_s0"
+    metrics = json.loads((job / "metrics.json").read_text())
+    tests = metrics["data"]["split"]["test"]
+    metrics["prediction"][tests[0]]["beats_persistence"] = {
+        "3s": {"vx": True, "vy": False, "yaw_rate": True}
+    }
+    (job / "metrics.json").write_text(json.dumps(metrics))
+    after = logs(study)
+    windows = after.split("**1.5 s windows**")[0]
+    row = next(line for line in windows.splitlines() if line.startswith("| edmd |"))
+    runs = 3 * len(tests)  # three seeds
+    assert row.count(f"(worse than persistence on 1 of {runs} runs)") == 1
+    assert row.split(" | ")[3].endswith(f"(worse than persistence on 1 of {runs} runs)")  # vy
+    assert after.replace(f" (worse than persistence on 1 of {runs} runs)", "") == before
+
+
 def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path) -> None:
     """The check above can fail: one seed's 80 km/h pass turned into a fail moves its cell."""
     source = RESULTS_DIR / BLOCKS["headline"][0]

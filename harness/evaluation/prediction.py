@@ -10,8 +10,14 @@ state under the recorded inputs, three ways, and returns RMSEs per state in SI u
 
 Row 0 of every rollout is the measured state itself and is left out of the RMSE. A model that
 diverges gives inf (written as null in ``metrics.json``). A whole-episode rollout that is not
-finite, or leaves the training data's range by more than ``DIVERGED_SPANS`` times its span in
-any state, is flagged ``diverged``: the report shows it as such, never inside a mean.
+finite, or leaves the data's envelope (per state, the training range, stretched to hold the
+drive's own, widened by ``envelope_spans`` training spans on each side: a spin-out the data
+never showed), is flagged
+``diverged`` from that time on (``diverged_at_s``), with its RMSE up to then beside the flag
+(``rmse_until_diverged``); the report shows it as diverged, never inside a mean.
+
+:func:`beats_persistence` compares every window's RMSE with persistence's (the state held) on
+the same drive: the verdict ``prediction.<episode>.beats_persistence.<window>.<state>``.
 
 :func:`robustness` repeats predictions of learners trained with a random layer, drawing the
 layer anew each time (the paper's second experiment), and reports the RMSE's mean and spread.
@@ -33,14 +39,18 @@ from harness.recorder import Recorder
 from learners.base import Learner
 
 __all__ = [
+    "ENVELOPE_SPANS",
     "STATE_NAMES",
+    "beats_persistence",
     "by_episode",
+    "envelope_exit",
     "evaluate",
     "open_loop",
     "plot_prediction",
     "plot_robustness",
     "rmse",
     "robustness",
+    "window_name",
     "windowed",
 ]
 
@@ -48,9 +58,11 @@ STATE_NAMES = ("vx", "vy", "yaw_rate")
 _UNITS = ("m/s", "m/s", "rad/s")
 log = logging.getLogger(__name__)
 _REPEAT_CHUNK = 25  # repeated predictions per batched rollout (bounds memory on long episodes)
-# A prediction this many training ranges outside the training data has left what the model knows:
-# its RMSE measures how fast it ran away, not how well it predicts.
-DIVERGED_SPANS = 10.0
+# A prediction this many training spans beyond the training range (on either side: the envelope is
+# twice the range) has left what the model knows: a vy of 5.85 m/s on a lap that never passes
+# 0.27, a spin-out the data never showed. Its RMSE measures how fast it ran away, not how well it
+# predicts. The main job's learners stay within 0.12 spans of their range.
+ENVELOPE_SPANS = 0.5
 
 
 def rmse(
@@ -106,17 +118,20 @@ def evaluate(
     *,
     window_steps: int = 41,
     window_seconds: float | Sequence[float] = 10.0,
+    envelope_spans: float = ENVELOPE_SPANS,
     recorder: Recorder | None = None,
     output_dir: Path | None = None,
     prefix: str = "",
 ) -> dict[str, dict[str, dict[str, Any]]]:
     """RMSEs of every learner on every episode: ``{learner: {episode: {metric: {state: v}}}}``.
 
-    Metrics: ``rmse``, ``rmse_window_<window_steps>``, ``rmse_window_<s>s`` for each ``s`` of
-    ``window_seconds`` (see the module docstring). Writes ``prediction_<episode>.png`` (truth
-    and every learner's open-loop prediction, as the paper's figure) into ``output_dir`` and one
-    recording per episode (``<prefix>prediction/<episode>``, predictions as
-    ``extra/predicted_<learner>``); ``recorder=None`` and ``output_dir=None`` write nothing.
+    Metrics: ``diverged`` and ``diverged_at_s`` (null unless it diverged; then also
+    ``rmse_until_diverged``), ``rmse``, ``rmse_window_<window_steps>``, ``rmse_window_<s>s`` for
+    each ``s`` of ``window_seconds`` (see the module docstring). Writes
+    ``prediction_<episode>.png`` (truth and every learner's open-loop prediction, as the paper's
+    figure) into ``output_dir`` and one recording per episode (``<prefix>prediction/<episode>``,
+    predictions as ``extra/predicted_<learner>``); ``recorder=None`` and ``output_dir=None``
+    write nothing.
     Use :func:`by_episode` for ``{episode: {learner: ...}}``.
     """
     seconds = [window_seconds] if isinstance(window_seconds, int | float) else window_seconds
@@ -126,10 +141,11 @@ def evaluate(
         predictions = {}
         for name, learner in learners.items():
             pred = open_loop(learner, episode)
-            _warn_diverged(name, episode, pred)
+            exit_row = envelope_exit(learner, pred, envelope_spans, episode.states)
             predictions[name] = pred
             results[name][episode.name] = {
-                "diverged": diverged(learner, pred),
+                "diverged": exit_row is not None,
+                "diverged_at_s": None,
                 "rmse": rmse(pred, episode.states),
                 f"rmse_window_{window_steps}": rmse(
                     *_pair(windowed(learner, episode, window_steps), episode)
@@ -139,6 +155,12 @@ def evaluate(
                 steps = max(1, round(s / dt))
                 results[name][episode.name][f"rmse_window_{s:g}s"] = rmse(
                     *_pair(windowed(learner, episode, steps), episode)
+                )
+            if exit_row is not None:
+                _warn_diverged(name, episode, pred, exit_row)
+                results[name][episode.name]["diverged_at_s"] = float(episode.time_s[exit_row])
+                results[name][episode.name]["rmse_until_diverged"] = rmse(
+                    pred, episode.states, np.arange(1, exit_row)
                 )
         if recorder is not None:
             recorder.rollout(
@@ -165,33 +187,85 @@ def evaluate(
     return results
 
 
-def diverged(learner: Learner, predicted: np.ndarray) -> bool:
-    """Whether a rollout is not finite or leaves the training data's range by more than
-    ``DIVERGED_SPANS`` spans in any state (in the learner's min-max normalized units)."""
-    if not np.all(np.isfinite(predicted)):
-        return True
-    normalizer = getattr(learner, "normalizer_", None)
-    if normalizer is None:  # a model that knows no training range: finiteness is all there is
-        return False
-    scaled = normalizer.states(predicted)
-    return bool(np.any((scaled < -DIVERGED_SPANS) | (scaled > 1.0 + DIVERGED_SPANS)))
+def envelope_exit(
+    learner: Learner,
+    predicted: np.ndarray,
+    spans: float = ENVELOPE_SPANS,
+    measured: np.ndarray | None = None,
+) -> int | None:
+    """The first row where a rollout is not finite or leaves the envelope: the training data's
+    range (stretched to hold the ``measured`` drive's, so a drive faster than training is no
+    spin-out) widened by ``spans`` training spans on each side, in the learner's min-max
+    normalized units; None when it stays inside. A model that knows no training range is
+    judged by finiteness alone."""
+    with np.errstate(invalid="ignore"):
+        outside = ~np.all(np.isfinite(predicted), axis=-1)
+        normalizer = getattr(learner, "normalizer_", None)
+        if normalizer is not None:
+            low, high = np.zeros(predicted.shape[-1]), np.ones(predicted.shape[-1])
+            if measured is not None:
+                truth = normalizer.states(measured)
+                low, high = np.minimum(low, truth.min(0)), np.maximum(high, truth.max(0))
+            scaled = normalizer.states(np.where(np.isfinite(predicted), predicted, 0.0))
+            outside |= np.any((scaled < low - spans) | (scaled > high + spans), axis=-1)
+    return int(np.argmax(outside)) if outside.any() else None
 
 
-def _warn_diverged(name: str, episode: Episode, predicted: np.ndarray) -> None:
-    """Say which learner diverged on which drive, and when: in ``metrics.json`` it is only a
-    null RMSE, and a controller on that model is the next to meet the NaN."""
-    bad = ~np.all(np.isfinite(predicted), axis=-1)
-    if bad.any():
-        first = int(np.argmax(bad))
-        log.warning(
-            "prediction: %s's open-loop prediction of %s is not finite from t = %.2f s on (%d "
-            "of %d steps): it diverged there, so its RMSE is inf (null in metrics.json)",
-            name,
-            episode.name,
-            episode.time_s[first],
-            int(bad.sum()),
-            len(bad),
-        )
+def _warn_diverged(name: str, episode: Episode, predicted: np.ndarray, row: int) -> None:
+    """Say which learner diverged on which drive, when and how: in ``metrics.json`` it is a flag
+    and a time, and a controller on that model is the next to meet the runaway."""
+    values = predicted[row]
+    how = (
+        "is not finite"
+        if not np.all(np.isfinite(values))
+        else "leaves the training data's envelope ("
+        + ", ".join(f"{s} {v:.3g}" for s, v in zip(STATE_NAMES, values, strict=True))
+        + ")"
+    )
+    log.warning(
+        "prediction: %s's open-loop prediction of %s %s from t = %.2f s on: it diverged there "
+        "(prediction.%s.diverged_at_s; its RMSE until then is rmse_until_diverged)",
+        name,
+        episode.name,
+        how,
+        episode.time_s[row],
+        episode.name,
+    )
+
+
+def window_name(metric: str) -> str:
+    """The window an RMSE key scores: ``rmse`` -> ``open_loop`` (the whole drive),
+    ``rmse_window_41`` -> ``41_steps``, ``rmse_window_3s`` -> ``3s``."""
+    if metric == "rmse":
+        return "open_loop"
+    window = metric.removeprefix("rmse_window_")
+    return window if window.endswith("s") else f"{window}_steps"
+
+
+def beats_persistence(
+    result: Mapping[str, Any], held: Mapping[str, Any]
+) -> dict[str, dict[str, bool | None]]:
+    """Per window and state, whether a learner's RMSE on a drive is below persistence's (the
+    state held) on the same drive: ``{window_name: {state: verdict}}``. A diverged whole-drive
+    rollout or a non-finite RMSE does not beat it; None where persistence has no number."""
+    verdicts: dict[str, dict[str, bool | None]] = {}
+    for metric, values in result.items():
+        bar = held.get(metric)
+        if metric == "rmse_until_diverged" or not metric.startswith("rmse"):
+            continue
+        if not (isinstance(values, Mapping) and isinstance(bar, Mapping)):
+            continue
+        ran_away = metric == "rmse" and bool(result.get("diverged"))
+        verdicts[window_name(metric)] = {
+            state: _below(values.get(state), bar.get(state), ran_away) for state in STATE_NAMES
+        }
+    return verdicts
+
+
+def _below(own: float | None, bar: float | None, ran_away: bool) -> bool | None:
+    if bar is None or not np.isfinite(bar):
+        return None
+    return not ran_away and own is not None and bool(np.isfinite(own)) and own < bar
 
 
 def by_episode(results: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:

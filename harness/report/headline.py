@@ -26,10 +26,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 from omegaconf import OmegaConf
 
 from harness.core.files import write_text_atomic
+from harness.evaluation.prediction import window_name
 from harness.report.frame import frame, load, read_jobs
 from harness.report.jobs import read_runs
 from harness.report.summary import summary, title
@@ -236,7 +238,11 @@ def logs(study: Path) -> str:
                         for s in STATES
                     ]
                 )
-            cells = [_spread([row[i] for row in per_seed], diverged, len(own)) for i in range(3)]
+            cells = [
+                _spread([row[i] for row in per_seed], diverged, len(own))
+                + _worse_runs(own, metric, state)
+                for i, state in enumerate(STATES)
+            ]
             fit = own["training.fit_time_s"].astype(float).mean()
             name = learner if variant == "—" else f"{learner} ({variant})"
             lines.append(f"| {name} | {len(own)} | {' | '.join(cells)} | {fit:.0f} |")
@@ -246,6 +252,20 @@ def logs(study: Path) -> str:
         f"{_seeds(jobs)}; fit: the fit alone, mean over seeds. From "
         f"[results/{study.name}](results/{study.name}.md)."
     )
+
+
+def _worse_runs(jobs: pd.DataFrame, metric: str, state: str) -> str:
+    """`` (worse than persistence on k of n runs)``: the test runs, over every seed, whose
+    verdict (``beats_persistence``) says the RMSE is not below the state held; empty where none
+    says so (or the jobs predate the verdict)."""
+    window = window_name(metric)
+    worse = total = 0
+    for _, job in jobs.iterrows():
+        for episode in job["data.split.test"]:
+            total += 1
+            verdict = job.get(f"prediction.{episode}.beats_persistence.{window}.{state}")
+            worse += isinstance(verdict, bool | np.bool_) and not verdict  # a frame's bool
+    return f" (worse than persistence on {worse} of {total} runs)" if worse else ""
 
 
 def _spread(values: list[float], diverged: int, seeds: int) -> str:

@@ -4,7 +4,9 @@
 lines say what the file says:
 
 - the open-loop prediction of each test drive (RMSE vx m/s / vy m/s / yaw rate rad/s), with
-  persistence (the state held) beside it, the bar every model must clear;
+  persistence (the state held) beside it, the bar every model must clear, and the states and
+  windows where the model does not clear it (``beats_persistence``); a diverged prediction with
+  the time it left the data's envelope and its RMSE until then;
 - per controller, the run's first: every course (the lane change): passed or failed, the largest
   lateral deviation from the centre line and the cones hit; every test-drive reference: the
   tracking RMSE; how smoothly each run drove where its metrics say (``quality``: steering
@@ -60,12 +62,37 @@ def _prediction_lines(prediction: Mapping[str, Any]) -> list[str]:
             continue
         line = f"  test drive {episode}, open loop RMSE vx / vy / r: {_rmse(result['rmse'])}"
         if result.get("diverged"):
-            line += " (diverged)"
+            at = result.get("diverged_at_s")
+            line += " (diverged" if at is None else f" (diverged at t = {float(at):.1f} s"
+            until = result.get("rmse_until_diverged")
+            line += f"; until then {_rmse(until)})" if isinstance(until, Mapping) else ")"
         held = persistence.get(episode)
         if isinstance(held, Mapping) and "rmse" in held:
             line += f"; persistence {_rmse(held['rmse'])}"
         lines.append(line)
+        worse = _worse_than_persistence(result.get("beats_persistence") or {})
+        if worse:
+            lines.append(f"    not better than persistence on {worse}")
     return lines
+
+
+def _worse_than_persistence(verdicts: Mapping[str, Mapping[str, Any]]) -> str:
+    """``vx (41 steps, 1.5 s windows), vy (open loop)``: the states and windows where the
+    model's RMSE is not below the state held; empty where it beats it everywhere."""
+    parts = []
+    for state in STATES:
+        windows = [_window(w) for w, by_state in verdicts.items() if by_state.get(state) is False]
+        if windows:
+            parts.append(f"{state} ({', '.join(windows)})")
+    return ", ".join(parts)
+
+
+def _window(name: str) -> str:
+    if name == "open_loop":
+        return "open loop"
+    if name.endswith("_steps"):
+        return f"{name.removesuffix('_steps')}-step windows"
+    return f"{name.removesuffix('s')} s windows"
 
 
 def _controller_line(runs: Mapping[str, Any]) -> str:

@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from harness.evaluation.prediction import window_name
 from harness.report.jobs import Run, common_overrides, variant
 
 STATES = ("vx", "vy", "yaw_rate")
@@ -95,7 +96,10 @@ def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
                 if r.get(metric) and not (metric == "rmse" and r.get("diverged"))
             ]
             note = f" ({gone} of {len(runs)} diverged)" if gone else ""
-            cells = [_mean_std(v.get(s) for v in present) + note for s in STATES]
+            cells = [
+                _mean_std(v.get(s) for v in present) + note + _worse(runs, metric, s)
+                for s in STATES
+            ]
             if gone and not present:
                 cells = [f"diverged ({gone} of {len(runs)})"] * len(STATES)
             table.rows.append([learner, plant, varied or "—", episode, str(len(present)), *cells])
@@ -119,6 +123,21 @@ def prediction_table(jobs: list[Run], metric: str = "rmse") -> Table:
             ["persistence", plant, "—", episode, "—"] + [_mean_std([values.get(s)]) for s in STATES]
         )
     return table
+
+
+def _worse(runs: list[Mapping[str, Any]], metric: str, state: str) -> str:
+    """`` (worse than persistence)``, or ``… in k of n`` jobs, where a job's verdict
+    (``beats_persistence``) says its RMSE is not below the state held on that drive; empty
+    where none says so (or no job has the verdict: runs before it existed)."""
+    window = window_name(metric)
+    worse = sum(1 for r in runs if _get(r, "beats_persistence", window, state) is False)
+    if not worse:
+        return ""
+    return (
+        " (worse than persistence"
+        + ("" if worse == len(runs) else f" in {worse} of {len(runs)}")
+        + ")"
+    )
 
 
 def _tracking_runs(

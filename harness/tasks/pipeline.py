@@ -55,7 +55,12 @@ from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, drive_again
 from harness.evaluation import reuse, spectrum, step_response, training_report
-from harness.evaluation.prediction import evaluate, robustness
+from harness.evaluation.prediction import (
+    ENVELOPE_SPANS,
+    beats_persistence,
+    evaluate,
+    robustness,
+)
 from harness.evaluation.tracking import TrackingTrajectory, load_run, record_run, track
 from harness.output import save_arrays
 from harness.plant import Sedan
@@ -95,6 +100,7 @@ class Pipeline:
         model_path: str | None = None,
         prediction_window_steps: int = 41,
         prediction_window_s: float | Sequence[float] = 10.0,
+        prediction_envelope_spans: float = ENVELOPE_SPANS,
         references: Mapping[str, Reference] | None = None,
         robustness_repeats: int = 100,
         logs_from_plant: bool = False,
@@ -136,6 +142,13 @@ class Pipeline:
                     f"task.prediction_window_s must be a number > 0 or a list of them (got "
                     f"{prediction_window_s})"
                 )
+        if not (is_number(prediction_envelope_spans) and 0 < prediction_envelope_spans < math.inf):
+            raise ValueError(
+                "task.prediction_envelope_spans must be a number > 0: how many training spans "
+                f"beyond the data's range a prediction counts as diverged (got "
+                f"{prediction_envelope_spans})"
+            )
+        self.envelope_spans = float(prediction_envelope_spans)
         # null leaves a reference out (an experiment replacing the default's lane change)
         references = {k: v for k, v in (references or {}).items() if v is not None}
         for name, reference in references.items():
@@ -301,19 +314,25 @@ class Pipeline:
             episodes,
             window_steps=self.window_steps,
             window_seconds=self.windows_s,
+            envelope_spans=self.envelope_spans,
             recorder=recorder,
             output_dir=output_dir,
             prefix=prefix,
         )
         section = _one_learner(predictions, self.learner_name)
-        # The bar every model must clear, on the same drives (``prediction.persistence``).
+        # The bar every model must clear, on the same drives (``prediction.persistence``), and
+        # the verdict against it per window and state (``<episode>.beats_persistence``).
         held = Persistence().fit([], [], learner.normalizer_)
-        section["persistence"] = evaluate(
+        bars = evaluate(
             {"persistence": held},
             episodes,
             window_steps=self.window_steps,
             window_seconds=self.windows_s,
         )["persistence"]
+        if not isinstance(learner, Persistence):
+            for episode, bar in bars.items():
+                section[episode]["beats_persistence"] = beats_persistence(section[episode], bar)
+        section["persistence"] = bars
         return section
 
     def _controller_models(self, learner: Learner, dataset: Dataset) -> dict[str, Learner | str]:
