@@ -173,7 +173,8 @@ def test_a_bad_log_fails_in_one_line_naming_the_file(
     with pytest.raises(DatasetError, match=message) as info:
         import_logs(logs_config(tmp_path))
     assert "\n" not in str(info.value)
-    assert not list((tmp_path / "store").glob("*/manifest.json"))  # nothing stored half
+    # Every file is checked before anything is written: no episode, lock or folder is left.
+    assert not (tmp_path / "store").exists()
 
 
 def test_only_the_configured_columns_are_read_as_numbers(tmp_path: Path) -> None:
@@ -541,3 +542,22 @@ def test_logs_that_cannot_drive_the_plant_are_refused_in_one_line(
     with pytest.raises(ValueError, match=r"task\.logs_from_plant") as error:
         check_logs_drive(Sedan(), dataset, "my_logs")  # type: ignore[arg-type]
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_logs_of_two_periods_are_refused_and_leave_a_stored_dataset_as_it_was(
+    tmp_path: Path,
+) -> None:
+    """Each log at its own period (no data.model_period_s): a log twice as slow as the others
+    is named; the dataset already stored from the good logs is untouched, file for file."""
+    for i, name in enumerate("abcde"):
+        write_csv(tmp_path / f"{name}.csv", drive(i))
+    good = logs_config(tmp_path, model_period_s=None)
+    stored = import_logs(good)
+    before = {p: p.read_bytes() for p in sorted((tmp_path / "store").rglob("*")) if p.is_file()}
+    slow = drive(9)
+    slow[:, 0] *= 2
+    write_csv(tmp_path / "f.csv", slow)
+    with pytest.raises(DatasetError, match=r"f\.csv has model period 0\.02 s, the other logs"):
+        import_logs(good)
+    after = {p: p.read_bytes() for p in sorted((tmp_path / "store").rglob("*")) if p.is_file()}
+    assert after == before and stored.is_dir()

@@ -511,49 +511,41 @@ def content_key(logs: LogsConfig, files: Sequence[Path]) -> tuple[str, dict[str,
 
 def import_logs(logs: LogsConfig) -> Path:
     """Check and store the logs (once: a stored dataset of the same files and config is reused);
-    return the dataset's directory, which :func:`harness.data.store.load` reads."""
+    return the dataset's directory, which :func:`harness.data.store.load` reads. Every file is
+    read and checked before anything is written: a bad file leaves the store as it was."""
     files = _files(logs)
     key, digests = content_key(logs, files)
     split = split_files(logs, files)
     directory = dataset_root(logs) / key
+    if directory.is_dir():
+        with locked(directory):
+            if _stored(directory):
+                return directory
+    episodes = {}
+    sources = {}
+    for path in files:
+        try:
+            episode = read_log(path, logs)
+        except ValueError as error:
+            raise DatasetError(f"data: {path} {error}") from None
+        episodes[episode.name], sources[episode.name] = episode, path.name
+    period = _common_period(episodes, sources)
     directory.mkdir(parents=True, exist_ok=True)
     with locked(directory):
         remove_temporaries(directory)
-        try:
-            stored = read_manifest(directory)
-        except Exception:  # damaged: rebuilt below from the logs, which are the truth
-            stored = None
-        if (
-            stored is not None
-            and stored.get("complete")
-            and not verify_episodes(directory, stored["episodes"])
-        ):
+        if _stored(directory):  # another job stored it while this one read
             return directory
         entries: dict[str, dict[str, Any]] = {}
-        episodes: dict[str, Episode] = {}
-        for path in files:
-            try:
-                episode = read_log(path, logs)
-            except ValueError as error:
-                raise DatasetError(f"data: {path} {error}") from None
-            target = directory / f"{episode.name}.npz"
+        for name, episode in episodes.items():
+            target = directory / f"{name}.npz"
             _write_episode(target, episode)
-            entries[episode.name] = {
+            entries[name] = {
                 "file": target.name,
                 "sha256": file_sha256(target),
                 "steps": len(episode),
                 "spun": False,
-                "source": path.name,
+                "source": sources[name],
             }
-            episodes[episode.name] = episode
-        periods = {name: float(np.median(np.diff(e.time_s))) for name, e in episodes.items()}
-        period = float(np.median(list(periods.values())))
-        for name, value in periods.items():
-            if not math.isclose(value, period, rel_tol=1e-3):
-                raise DatasetError(
-                    f"data: {entries[name]['source']} has model period {value:g} s, the other "
-                    f"logs {period:g} s: set data.model_period_s to one they all divide"
-                )
         train = [episodes[name] for name in split["train"]]
         manifest = {
             "format": 1,
@@ -570,6 +562,32 @@ def import_logs(logs: LogsConfig) -> Path:
         }
         write_manifest(directory, manifest)
     return directory
+
+
+def _stored(directory: Path) -> bool:
+    """A complete dataset whose episode files are intact (call under the lock)."""
+    try:
+        stored = read_manifest(directory)
+    except Exception:  # damaged: rebuilt from the logs, which are the truth
+        return False
+    return (
+        stored is not None
+        and bool(stored.get("complete"))
+        and not verify_episodes(directory, stored["episodes"])
+    )
+
+
+def _common_period(episodes: Mapping[str, Episode], sources: Mapping[str, str]) -> float:
+    """The model period all logs share, or one line naming the log that differs."""
+    periods = {name: float(np.median(np.diff(e.time_s))) for name, e in episodes.items()}
+    period = float(np.median(list(periods.values())))
+    for name, value in periods.items():
+        if not math.isclose(value, period, rel_tol=1e-3):
+            raise DatasetError(
+                f"data: {sources[name]} has model period {value:g} s, the other logs "
+                f"{period:g} s: set data.model_period_s to one they all divide"
+            )
+    return period
 
 
 def _write_episode(path: Path, e: Episode) -> None:
