@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from harness.core.contracts import Plant
-from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
+from harness.data import coverage
 from harness.data.collect import reference_speeds
 from harness.data.coverage import sawtooth_frames, steering_reversals
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
@@ -392,3 +393,21 @@ def test_references_outside_the_training_speeds_are_named(
     assert result["outside_training_speed"] == ["lane_change_22.2"]
     assert "lane_change_22.2 runs at 22.2 to 22.2 m/s, outside" in caplog.text
     assert "slow_15" not in caplog.text
+
+
+def test_the_coverage_figure_of_logs_without_poses_shows_speed_and_accelerations() -> None:
+    """No poses, no path to draw: the panel shows how fast and how hard the car was driven."""
+    rng = np.random.default_rng(0)
+    steps = 300
+    states = np.column_stack([np.linspace(5, 25, steps), rng.normal(0, 0.2, (steps, 2))])
+    channels = (InputChannel("delta", role="road_wheel", unit="rad"), InputChannel("torque"))
+    inputs = rng.normal(0, 1, (steps, 2))
+    episode = Episode(
+        "lap", np.arange(steps) * 0.01, states, inputs, np.zeros((steps, 3)), channels
+    )
+    titles = [ax.get_title() for ax in coverage.figure({"train": [episode]}, None).axes]
+    assert "1 episodes (no poses): speed" in titles and "accelerations (log count)" in titles
+    assert not any("(paths)" in title for title in titles)
+    with_poses = dataclasses.replace(episode, poses=rng.normal(0, 10, (steps, 3)))
+    titles = [ax.get_title() for ax in coverage.figure({"train": [with_poses]}, None).axes]
+    assert "1 episodes (paths)" in titles

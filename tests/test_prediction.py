@@ -9,13 +9,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
 from harness.evaluation.prediction import (
     ENVELOPE_SPANS,
+    _figure,
     beats_persistence,
     by_episode,
     envelope_exit,
     evaluate,
+    input_groups,
+    plot_prediction,
     robustness,
     window_name,
     windowed,
@@ -321,3 +324,41 @@ def test_beating_persistence_is_a_lower_rmse_on_the_same_drive_state_by_state() 
     assert beats_persistence(ran_away, held)["open_loop"] == dict.fromkeys(
         ("vx", "vy", "yaw_rate"), False
     )
+
+
+RACE_CAR = (
+    InputChannel("road_wheel_angle", role="road_wheel", unit="rad"),
+    InputChannel("torque_rl", role="drive", unit="N*m"),
+    InputChannel("torque_rr", role="drive", unit="N*m"),
+    InputChannel("brake_front", role="brake", unit="bar"),
+    InputChannel("brake_rear", role="brake", unit="bar"),
+)
+
+
+def test_inputs_of_one_unit_share_an_axis_and_other_units_get_their_own() -> None:
+    assert input_groups(RACE_CAR) == [[0], [1, 2], [3, 4]]
+    # Logs from before units: the first alone, the others together, as they were drawn.
+    plain = tuple(InputChannel(c.name) for c in RACE_CAR)
+    assert input_groups(plain) == [[0], [1, 2, 3, 4]]
+
+
+def test_a_five_input_car_is_drawn_one_axis_per_unit(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    steps = 200
+    inputs = np.column_stack(
+        [
+            rng.normal(0, 0.05, steps),
+            *rng.uniform(0, 1250, (2, steps)),
+            *rng.uniform(0, 32, (2, steps)),
+        ]
+    )
+    states = np.column_stack([np.full(steps, 20.0), rng.normal(0, 0.1, (steps, 2))])
+    episode = Episode(
+        "lap", np.arange(steps) * 0.01, states, inputs, np.zeros((steps, 3)), RACE_CAR
+    )
+    path = plot_prediction(episode, {"held": np.repeat(states[:1], steps, 0)}, tmp_path / "p.png")
+    assert path.stat().st_size > 20_000
+    _, axes = _figure(episode)
+    assert len(axes) == 3 + 3  # the states, then steering, drive torques, brake pressures
+    assert axes[4].get_ylabel() == "torque_rl, torque_rr [N*m]"
+    assert axes[5].get_ylabel() == "brake_front, brake_rear [bar]"

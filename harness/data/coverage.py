@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -24,6 +25,11 @@ SAWTOOTH_REVERSALS = 4
 def lateral_accel(episode: Episode) -> np.ndarray:
     vx, vy, yaw_rate = episode.states.T
     return np.gradient(vy, episode.time_s) + vx * yaw_rate
+
+
+def longitudinal_accel(episode: Episode) -> np.ndarray:
+    vx, vy, yaw_rate = episode.states.T
+    return np.gradient(vx, episode.time_s) - vy * yaw_rate
 
 
 def steering_reversals(
@@ -107,7 +113,13 @@ def summary(
 
 
 def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float | None, path: Path) -> None:
-    """Like the paper's training-data figure: every path, the state distribution, a_y and u."""
+    """:func:`figure`, saved to ``path``."""
+    save_figure(figure(splits, road_friction), path, dpi=100)
+
+
+def figure(splits: Mapping[str, Sequence[Episode]], road_friction: float | None) -> Figure:
+    """Like the paper's training-data figure: every path (without poses: the speed and the
+    accelerations), the state distribution, a_y and u."""
     episodes = [e for split in splits.values() for e in split]
     states = np.concatenate([e.states for e in episodes])
     inputs = np.concatenate([e.inputs for e in episodes])
@@ -115,21 +127,10 @@ def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float | None, p
     fig = Figure(figsize=(16, 9))
     grid = fig.add_gridspec(2, 4)
 
-    ax = fig.add_subplot(grid[:, :2])
-    styles = {"train": "-", "validation": "--", "test": ":"}
-    for split, members in splits.items():
-        for e in members:
-            ax.plot(
-                e.poses[:, 0],
-                e.poses[:, 1],
-                styles.get(split, "-"),
-                lw=0.8,
-                label=f"{e.name} ({split})" if len(episodes) <= 12 else None,
-            )
-    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{len(episodes)} episodes (paths)")
-    ax.set_aspect("equal", adjustable="datalim")
-    if len(episodes) <= 12:
-        ax.legend(fontsize=7, loc="best")
+    if not any(np.ptp(e.poses[:, :2]) > 0 for e in episodes):  # logs without poses
+        _speed_and_accelerations(fig, grid, episodes, states)
+    else:
+        _paths(fig.add_subplot(grid[:, :2]), splits, len(episodes))
 
     panels = [
         (grid[0, 2], states[:, 0], states[:, 1], "vx (m/s)", "vy (m/s)"),
@@ -154,7 +155,7 @@ def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float | None, p
     if channels == SEDAN_INPUTS:
         labels = ("steering-wheel angle (deg)", "throttle / 0.2  |  −brake / 9.1 MPa")
     else:
-        labels = tuple(c.name for c in channels[:2])
+        labels = tuple(c.name + (f" ({c.unit})" if c.unit else "") for c in channels[:2])
     if len(channels) == 1:
         ax.hist(inputs[:, 0], bins=80, log=True)
         ax.set(xlabel=labels[0], ylabel="frames", title="input (log count)")
@@ -165,4 +166,42 @@ def plot(splits: Mapping[str, Sequence[Episode]], road_friction: float | None, p
     dt = float(episodes[0].time_s[1] - episodes[0].time_s[0])
     fig.suptitle(f"Driving data: {len(states):,} frames at {dt * 1000:g} ms")
     fig.tight_layout()
-    save_figure(fig, path, dpi=100)
+    return fig
+
+
+def _paths(ax: Any, splits: Mapping[str, Sequence[Episode]], count: int) -> None:
+    """Every episode's path (X, Y), styled by split."""
+    styles = {"train": "-", "validation": "--", "test": ":"}
+    for split, members in splits.items():
+        for e in members:
+            ax.plot(
+                e.poses[:, 0],
+                e.poses[:, 1],
+                styles.get(split, "-"),
+                lw=0.8,
+                label=f"{e.name} ({split})" if count <= 12 else None,
+            )
+    ax.set(xlabel="X (m)", ylabel="Y (m)", title=f"{count} episodes (paths)")
+    ax.set_aspect("equal", adjustable="datalim")
+    if count <= 12:
+        ax.legend(fontsize=7, loc="best")
+
+
+def _speed_and_accelerations(
+    fig: Figure, grid: Any, episodes: Sequence[Episode], states: np.ndarray
+) -> None:
+    """Where the logs have no poses, what the path panel would say about coverage: the speed
+    the car was driven at, and its longitudinal and lateral accelerations together."""
+    ax = fig.add_subplot(grid[0, :2])
+    ax.hist(states[:, 0], bins=80, color="tab:blue")
+    ax.set(xlabel="vx (m/s)", ylabel="frames", title=f"{len(episodes)} episodes (no poses): speed")
+    a_x = np.concatenate([longitudinal_accel(e) for e in episodes])
+    a_y = np.concatenate([lateral_accel(e) for e in episodes])
+    ax = fig.add_subplot(grid[1, :2])
+    ax.hexbin(a_y / G, a_x / G, gridsize=60, bins="log", cmap="viridis", mincnt=1)
+    ax.set(
+        xlabel="lateral acceleration (g)",
+        ylabel="longitudinal acceleration (g)",
+        title="accelerations (log count)",
+    )
+    ax.set_aspect("equal", adjustable="datalim")

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.core.episode import SEDAN_INPUTS, Episode
+from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel
 from harness.output import save_arrays, save_figure
 from harness.recorder import Recorder
 from learners.base import Learner
@@ -363,9 +363,23 @@ def _finite(x: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(x), x, np.nan)
 
 
+def input_groups(channels: Sequence[InputChannel]) -> list[list[int]]:
+    """The inputs drawn together on one axis: those of one unit (or, without a unit, one role);
+    inputs that declare neither are each drawn alone after the first (logs from before roles:
+    the first alone, the others together, as they were)."""
+    if all(c.unit is None and c.role is None for c in channels):
+        return [[0], list(range(1, len(channels)))] if len(channels) > 1 else [[0]]
+    groups: dict[str, list[int]] = {}
+    for j, channel in enumerate(channels):
+        groups.setdefault(channel.unit or channel.role or channel.name, []).append(j)
+    return list(groups.values())
+
+
 def _figure(episode: Episode) -> tuple[Figure, np.ndarray]:
-    fig = Figure(figsize=(9, 9))
-    axes = fig.subplots(4, 1, sharex=True)
+    sedan = episode.channels == SEDAN_INPUTS
+    groups = [[0, 1]] if sedan else input_groups(episode.channels)
+    fig = Figure(figsize=(9, 9 + 1.5 * (len(groups) - 1)))
+    axes = fig.subplots(3 + len(groups), 1, sharex=True)
     t = episode.time_s
     for ax, i in zip(axes[:3], range(3), strict=True):
         ax.plot(t, episode.states[:, i], "k-", lw=1.6, label="measured")
@@ -374,21 +388,26 @@ def _figure(episode: Episode) -> tuple[Figure, np.ndarray]:
         span = np.ptp(episode.states[:, i])
         pad = 0.5 * span + 1e-3
         ax.set_ylim(episode.states[:, i].min() - pad, episode.states[:, i].max() + pad)
-    ax_u = axes[3]
-    ax_u.plot(t, episode.inputs[:, 0], color="C7", lw=1.0)
-    sedan = episode.channels == SEDAN_INPUTS
-    ax_u.set_ylabel("steer_wheel [deg]" if sedan else episode.input_names[0], color="C7")
-    if episode.inputs.shape[1] > 1:  # the others on one axis of their own
+    if sedan:  # steering on the left, the signed pedal on a twin axis
+        ax_u = axes[3]
+        ax_u.plot(t, episode.inputs[:, 0], color="C7", lw=1.0)
+        ax_u.set_ylabel("steer_wheel [deg]", color="C7")
         ax_p = ax_u.twinx()
-        for j, name in enumerate(episode.input_names[1:], start=1):
-            ax_p.plot(t, episode.inputs[:, j], color=f"C{7 + j}", lw=1.0, label=name)
-        if sedan:
-            ax_p.set_ylabel("pedal [throttle / -MPa]", color="C8")
-        else:
-            ax_p.set_ylabel(", ".join(episode.input_names[1:]))
-            ax_p.legend(fontsize=7, loc="upper right")
-    ax_u.set_xlabel("time [s]")
-    ax_u.grid(True, alpha=0.3)
+        ax_p.plot(t, episode.inputs[:, 1], color="C8", lw=1.0, label=episode.input_names[1])
+        ax_p.set_ylabel("pedal [throttle / -MPa]", color="C8")
+    else:  # one axis per unit, so a brake's bar and a torque's N·m do not share a scale
+        for ax, group in zip(axes[3:], groups, strict=True):
+            for j in group:
+                channel = episode.channels[j]
+                ax.plot(t, episode.inputs[:, j], color=f"C{7 + j}", lw=1.0, label=channel.name)
+            units = {episode.channels[j].unit for j in group} - {None}
+            label = ", ".join(episode.input_names[j] for j in group) if len(group) < 3 else "inputs"
+            ax.set_ylabel(f"{label} [{units.pop()}]" if len(units) == 1 else label, fontsize=8)
+            if len(group) > 1:
+                ax.legend(fontsize=7, loc="upper right")
+            ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    axes[3].grid(True, alpha=0.3)
     return fig, axes
 
 
