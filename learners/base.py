@@ -32,7 +32,7 @@ import torch
 
 from harness.core import contracts
 from harness.core.contracts import STATE_NAMES
-from harness.core.episode import Episode, MinMaxNormalizer
+from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
 from harness.core.files import write_atomic
 
 __all__ = [
@@ -151,11 +151,12 @@ class Learner(contracts.Learner, ABC):
         nothing: a learner that can be configured too big overrides it."""
         del episode_frames, n, m
 
-    def check_input_names(self, names: Sequence[str]) -> None:
-        """Refuse, in one line, inputs this learner cannot be fitted on (``names``, in order, as
-        the data config gives them); called before any data is collected. The default takes any
-        inputs: a learner that needs a particular one overrides it."""
-        del names
+    def check_inputs(self, channels: Sequence[InputChannel]) -> None:
+        """Refuse, in one line, inputs this learner cannot be fitted on (``channels``, in order,
+        as the data config gives them: names, and roles where declared); called before any
+        data is collected. The default takes any inputs: a learner that needs a particular one
+        overrides it."""
+        del channels
 
     @property
     def redraws_random_layer(self) -> bool:

@@ -19,8 +19,14 @@ columns each)::
     vx' = vy r + c_0 + c_2 vx² + Σ_j (g_j f_j⁺ + p_j f_j⁺ / w + b_j f_j⁻)
 
 (rolling resistance, aerodynamic drag, a force between constant torque g and constant power
-p / v, brake). The first input is the steering angle: in degrees where its name ends in
-``_deg`` (the sedan's ``steer_wheel_deg``), else in radians.
+p / v, brake). Each input's role (:class:`~harness.core.episode.InputChannel`, the data config's
+``data.inputs.<name>.role``) says where it goes: the one steering input (``steering_wheel`` or
+``road_wheel``, in its unit deg or rad) to the lateral model, every other to the longitudinal
+one, with the signs physics requires: resistances and a brake never accelerate, a drive or the
+sedan's signed pedal never decelerates above zero, and a brake does no work per speed (p = 0).
+A fit that breaks a sign is solved again with the signs as bounds (``training.fit.bounded``
+names the coefficients held at their bound). Data whose inputs declare no roles is refused in
+one line, before any data is read.
 
 Identified by least squares on the training episodes' one-step derivatives (samples at vx >=
 ``min_speed_mps`` and, for the lateral and yaw equations, in the tyres' linear range |ay| <=
@@ -29,8 +35,11 @@ measured (``cg_to_front_m``, ``cg_to_rear_m``: tape and axle scales), the latera
 equations are fitted together, linear in (C_f / m, C_r / m, C_f / (m i_s)) for a given m / I_z,
 by separable least squares over m / I_z; the physical values follow (:attr:`parameters`).
 Where they are not (``null``: a user's logs of a car nobody measured), the six θ are fitted
-directly, and a and b are recovered from them. The mass cancels: it only converts per-mass
-values into N/rad and kg·m².
+directly, and a and b are recovered from them; where those are outside what a road car can be
+(:data:`GEOMETRY_BOUNDS_M`: the data cannot separate them), a and b are identified within those
+bounds instead, by the search above over a and b, and a warning says so. The mass cancels: it
+only converts per-mass values into N/rad and kg·m². On logs of another car, the sedan's
+geometry and mass (the defaults) are used with a warning that names the settings to give.
 
 Discretized at the data's period h by ``substeps_`` explicit Euler steps of h / n: n is the
 smallest that keeps Euler stable, with a factor-2 margin, for every eigenvalue of the lateral
@@ -46,17 +55,28 @@ the time-varying DE-MPC linearises it along its plan (``controller=bicycle_mpc``
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
-from scipy.optimize import minimize_scalar
+from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
 from harness.core.checks import positive
 from harness.core.contracts import Dynamics
-from harness.core.episode import SEDAN_INPUTS, Episode, MinMaxNormalizer, input_features
+from harness.core.episode import (
+    ANGLE_UNITS,
+    ROLES,
+    SEDAN_INPUTS,
+    STEERING_ROLES,
+    Episode,
+    InputChannel,
+    MinMaxNormalizer,
+    input_features,
+)
 from learners.base import Learner, Shape, check_fit_data, check_rollout_args
 
 __all__ = ["SingleTrack", "coefficient_names", "form_of"]
@@ -66,7 +86,64 @@ YAW = ("mass_per_inertia",)  # m / I_z
 FORM = ("vy_steer", "vy_vy", "vy_r", "r_steer", "r_vy", "r_r")  # θ_1 .. θ_6
 LONGITUDINAL = ("rolling", "drag", "throttle", "throttle_power", "brake")  # the sedan's c_0 .. b
 MAX_SUBSTEPS = 50
+# a and b of any road car: from a city car's 0.8 m to a long van's 3 m, with margin.
+GEOMETRY_BOUNDS_M = (0.5, 3.5)
+SEDAN_GEOMETRY = {"cg_to_front_m": 1.15, "cg_to_rear_m": 1.55, "mass_kg": 1500.0}
+# Bounds on (g, p, b) of an input by its role: g multiplies its positive part, p that part per
+# speed, b its negative part. None: the coefficient is held at 0.
+_INF = math.inf
+_SIGNS: dict[str, tuple[tuple[float, float] | None, ...]] = {
+    "drive": ((0.0, _INF), (0.0, _INF), (0.0, _INF)),
+    "pedal": ((0.0, _INF), (0.0, _INF), (0.0, _INF)),
+    "brake": ((-_INF, 0.0), None, (0.0, _INF)),
+    "": ((-_INF, _INF), (-_INF, _INF), (-_INF, _INF)),  # a model fitted before roles
+}
+_RESISTANCES = ((-_INF, 0.0), (-_INF, 0.0))  # c_0 (rolling), c_2 (drag)
+log = logging.getLogger(__name__)
 _Maps = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class InputLayout:
+    """Where each input goes: ``order`` lists the data's columns as the model takes them (the
+    steering first, then the others as the data has them), ``steer_to_rad`` converts the
+    steering's unit, and ``roles`` are the others' roles, in that order."""
+
+    order: tuple[int, ...]
+    steer_to_rad: float
+    roles: tuple[str, ...]
+
+    @classmethod
+    def of(cls, channels: Sequence[InputChannel], fitting: bool = True) -> InputLayout:
+        """The layout the channels' roles declare; refused in one line where they do not say
+        which input steers and what the others are. A model file fitted before roles were
+        described (``fitting=False``, no role anywhere) keeps the layout it was fitted with:
+        the first input steers, in degrees where its name ends in ``_deg``."""
+        if not fitting and all(c.role is None for c in channels):
+            unit = ANGLE_UNITS["deg" if channels[0].name.endswith("_deg") else "rad"]
+            return cls(tuple(range(len(channels))), unit, ("",) * (len(channels) - 1))
+        for channel in channels:
+            if channel.role is None:
+                raise ValueError(
+                    f"single_track: input {channel.name!r} declares no role, so the physics "
+                    f"baseline cannot tell whether it steers, drives or brakes: set "
+                    f"data.inputs.{channel.name}.role to one of {', '.join(ROLES)}"
+                )
+        steering = [j for j, c in enumerate(channels) if c.role in STEERING_ROLES]
+        if len(steering) != 1:
+            names = ", ".join(channels[j].name for j in steering) or "none"
+            raise ValueError(
+                f"single_track: the physics baseline needs exactly one steering input (role "
+                f"steering_wheel or road_wheel); the data declares {len(steering)} ({names})"
+            )
+        first = steering[0]
+        order = (first, *(j for j in range(len(channels)) if j != first))
+        roles = tuple(str(channels[j].role) for j in order[1:])
+        return cls(order, ANGLE_UNITS[str(channels[first].unit)], roles)
+
+    def bounds(self) -> list[tuple[float, float] | None]:
+        """Bounds of the longitudinal coefficients (c_0, c_2, then g, p, b of each input)."""
+        return [*_RESISTANCES, *(b for role in self.roles for b in _SIGNS[role])]
 
 
 def coefficient_names(input_names: Sequence[str]) -> tuple[str, ...]:
@@ -142,6 +219,7 @@ class SingleTrack(Learner):
         self.substeps_ = 1
         self._maps: tuple[MinMaxNormalizer, _Maps] | None = None
         self._floats: tuple[float, ...] = ()
+        self._layout: tuple[Any, InputLayout, tuple[int, ...]] | None = None
 
     @classmethod
     def of_physics(
@@ -162,6 +240,10 @@ class SingleTrack(Learner):
         model.substeps_ = model._stable_substeps(40.0)
         return model
 
+    def check_inputs(self, channels: Sequence[InputChannel]) -> None:
+        """The roles say which input steers and what the others are (before any data)."""
+        InputLayout.of(channels)
+
     # -- identification ---------------------------------------------------------------------
 
     def fit(
@@ -169,11 +251,14 @@ class SingleTrack(Learner):
     ) -> Self:
         """Least squares on the Euler one-step derivatives of ``train`` (module docstring)."""
         check_fit_data(train, validation, normalizer, self.name)
+        layout = InputLayout.of(normalizer.channels)
+        self._warn_sedan_geometry(normalizer.channels)
         steps = np.concatenate([np.diff(e.time_s) for e in train])
         dt = float(np.median(steps))
-        self.normalizer_ = normalizer  # the inputs' names say the steering's unit
+        self.normalizer_ = normalizer  # the inputs' roles say which steers, in which unit
+        self._maps = None
         x = np.concatenate([e.states[:-1] for e in train])
-        u = np.concatenate([normalizer.input_features(e.inputs[:-1]) for e in train])
+        u = np.concatenate([self._features(e.inputs[:-1]) for e in train])
         rate = np.concatenate([np.diff(e.states, axis=0) for e in train]) / dt
         vx, vy, r = x.T
         lateral_accel = rate[:, 1] + vx * r
@@ -187,13 +272,11 @@ class SingleTrack(Learner):
                 f"{self.max_lateral_accel} m/s² (learner.max_lateral_accel_mps2); too few to "
                 f"identify {needed // 10} parameters"
             )
-        delta = u[moving, 0] * self._steer_to_rad()
+        delta = u[moving, 0] * layout.steer_to_rad
+        lateral = (x[moving], delta, lateral_accel[moving], rate[moving, 2])
+        self.identified_geometry_: tuple[float, float] | None = None
         if self.a is not None and self.b is not None:
-            front, rear, steer, mass_per_inertia = self._fit_lateral(
-                x[moving], delta, lateral_accel[moving], rate[moving, 2], self.a, self.b
-            )
-            physics = dict(zip(LATERAL + YAW, (front, rear, steer, mass_per_inertia), strict=True))
-            form = form_of(physics, self.a, self.b)
+            form = self._fit_geometry(*lateral, self.a, self.b)
         else:
             w = np.maximum(vx[moving], self.min_speed)
             regressors = np.column_stack([delta, vy[moving] / w, r[moving] / w])
@@ -201,15 +284,111 @@ class SingleTrack(Learner):
                 *_lstsq(regressors, lateral_accel[moving]),
                 *_lstsq(regressors, rate[moving, 2]),
             )
+            a, b = _geometry_of(form)
+            low, high = GEOMETRY_BOUNDS_M
+            if not (low <= a <= high and low <= b <= high):
+                a, b = self._bounded_geometry(*lateral, a, b)
+                form = self._fit_geometry(*lateral, a, b)
+                self.identified_geometry_ = (a, b)
         rolling_regime = vx > 0.5  # at standstill the brakes hold the car: no dynamics to fit
         longitudinal = self._longitudinal_regressors(x, u)[rolling_regime]
         target = (rate[:, 0] - vy * r)[rolling_regime]
-        longitudinal_fit = _lstsq(longitudinal, target)
+        longitudinal_fit, self.bounded_ = _signed_lstsq(longitudinal, target, layout.bounds())
+        if self.bounded_:
+            names = coefficient_names(self._internal_names(normalizer))[6:]
+            held = ", ".join(names[i] for i in self.bounded_)
+            log.warning(
+                "single_track: the least-squares fit gave %s the sign physics forbids (an input "
+                "that brakes accelerating, a drive that slows); fitted again with the signs as "
+                "bounds, %s (training.fit.bounded)",
+                held,
+                "held at its bound" if len(self.bounded_) == 1 else "each held at its bound",
+            )
         self.coefficients_ = np.array([*form, *longitudinal_fit], dtype=np.float64)
         self.dt_ = dt
         self._maps = None  # new coefficients: the cached maps and floats are rebuilt
         self.substeps_ = self._stable_substeps(float(vx.max()))
         return self
+
+    def _fit_geometry(
+        self,
+        x: np.ndarray,
+        delta: np.ndarray,
+        lateral_accel: np.ndarray,
+        yaw_accel: np.ndarray,
+        a: float,
+        b: float,
+    ) -> tuple[float, float, float, float, float, float]:
+        """θ_1 .. θ_6 of the physical fit with a and b given."""
+        fitted = self._fit_lateral(x, delta, lateral_accel, yaw_accel, a, b)
+        return form_of(dict(zip(LATERAL + YAW, fitted, strict=True)), a, b)
+
+    def _bounded_geometry(
+        self,
+        x: np.ndarray,
+        delta: np.ndarray,
+        lateral_accel: np.ndarray,
+        yaw_accel: np.ndarray,
+        a_free: float,
+        b_free: float,
+    ) -> tuple[float, float]:
+        """a and b within :data:`GEOMETRY_BOUNDS_M` that fit the lateral and yaw equations
+        best (a coarse grid, then a bounded local search), with a warning that the free fit's
+        were not a road car's."""
+        low, high = GEOMETRY_BOUNDS_M
+
+        def residual(ab: np.ndarray) -> float:
+            return self._lateral_residual(x, delta, lateral_accel, yaw_accel, *map(float, ab))
+
+        grid = np.linspace(low, high, 7)
+        start = min(((a, b) for a in grid for b in grid), key=lambda ab: residual(np.array(ab)))
+        best = minimize(residual, np.array(start), bounds=[(low, high)] * 2, method="L-BFGS-B")
+        a, b = (float(v) for v in best.x)
+        log.warning(
+            "single_track: the data gives a = %.3g m, b = %.3g m, outside [%g, %g] m: it cannot "
+            "separate the axles; identified within those bounds instead, a = %.2f m, b = %.2f "
+            "m. Measured ones are better: learner.cg_to_front_m, learner.cg_to_rear_m",
+            a_free,
+            b_free,
+            low,
+            high,
+            a,
+            b,
+        )
+        return a, b
+
+    def _lateral_residual(
+        self,
+        x: np.ndarray,
+        delta: np.ndarray,
+        lateral_accel: np.ndarray,
+        yaw_accel: np.ndarray,
+        a: float,
+        b: float,
+    ) -> float:
+        """Normalized squared residual of both equations with a and b given."""
+        form = self._fit_geometry(x, delta, lateral_accel, yaw_accel, a, b)
+        vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
+        w = np.maximum(vx, self.min_speed)
+        regressors = np.column_stack([delta, vy / w, r / w])
+        lateral = regressors @ np.array(form[:3]) - lateral_accel
+        yaw = regressors @ np.array(form[3:]) - yaw_accel
+        return float(np.mean(lateral**2) / lateral_accel.var() + np.mean(yaw**2) / yaw_accel.var())
+
+    def _warn_sedan_geometry(self, channels: Sequence[InputChannel]) -> None:
+        """Logs of another car fitted with the sedan's measured geometry and mass: say so."""
+        own = {"cg_to_front_m": self.a, "cg_to_rear_m": self.b, "mass_kg": self.mass_kg}
+        defaults = [key for key, value in own.items() if value == SEDAN_GEOMETRY[key]]
+        if tuple(channels) == SEDAN_INPUTS or not defaults:
+            return
+        log.warning(
+            "single_track: these inputs are not the sedan's, but %s %s the sedan's (%s): set "
+            "learner.%s to this car's (null a and b: identified from the data)",
+            ", ".join(defaults),
+            "is" if len(defaults) == 1 else "are",
+            ", ".join(f"{SEDAN_GEOMETRY[k]:g}" for k in defaults),
+            "=…, learner.".join(defaults) + "=…",
+        )
 
     @staticmethod
     def _fit_lateral(
@@ -267,33 +446,54 @@ class SingleTrack(Learner):
         return min(needed, MAX_SUBSTEPS)
 
     def _steer_to_rad(self) -> float:
-        """The first input's unit: degrees where its name ends in ``_deg``, else radians."""
+        """The steering input's unit, as its channel declares it."""
+        return self._input_layout().steer_to_rad
+
+    def _input_layout(self) -> InputLayout:
+        """The layout of this model's inputs (before a fit: the sedan's), cached per channels."""
         normalizer = getattr(self, "normalizer_", None)
-        name = normalizer.input_names[0] if normalizer is not None else "steer_wheel_deg"
-        return math.pi / 180.0 if name.endswith("_deg") else 1.0
+        channels = normalizer.channels if normalizer is not None else SEDAN_INPUTS
+        if self._layout is None or self._layout[0] is not channels:
+            layout = InputLayout.of(channels, fitting=False)
+            inverse = tuple(int(i) for i in np.argsort(layout.order))
+            self._layout = (channels, layout, inverse)
+        return self._layout[1]
+
+    def _internal(self, u: np.ndarray) -> np.ndarray:
+        """Inputs (..., m) in the data's column order as the model takes them (steering first)."""
+        order = self._input_layout().order
+        return u if order == tuple(range(len(order))) else u[..., list(order)]
+
+    def _internal_names(self, normalizer: MinMaxNormalizer) -> tuple[str, ...]:
+        return tuple(normalizer.input_names[j] for j in self._input_layout().order)
 
     @property
     def fit_summary(self) -> dict[str, Any]:
-        """What the fit identified (``training.fit``): the physics, and the Euler sub-steps."""
-        return {"parameters": self.parameters, "substeps": self.substeps_}
+        """What the fit identified (``training.fit``): the physics, the Euler sub-steps, the
+        longitudinal coefficients held at a sign's bound, and whether a and b were bounded."""
+        summary = {"parameters": self.parameters, "substeps": self.substeps_}
+        bounded = getattr(self, "bounded_", [])
+        names = coefficient_names(self._internal_names(self.normalizer_))[6:]
+        summary["bounded"] = [names[i] for i in bounded]
+        summary["geometry_bounded"] = getattr(self, "identified_geometry_", None) is not None
+        return summary
 
     @property
     def parameters(self) -> dict[str, float]:
         """The identified physics, in SI units: C_f, C_r (N/rad per axle), I_z (kg m²), the
         steering ratio (per unit of the steering input), a and b (given or recovered), and the
         longitudinal coefficients (per unit mass)."""
-        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6].tolist()
+        t1, t2, t3, _, t5, _ = self.coefficients_[:6].tolist()
         mass_per_inertia = t5 / t3 if t3 else float("nan")
         total, moment = -t2, -t3
         if self.a is not None and self.b is not None:
             a, b = self.a, self.b
-        else:  # a = θ_4 / (k θ_1); b from C_f + C_r, a C_f − b C_r and a² C_f + b² C_r
-            a = t4 / (mass_per_inertia * t1)
-            b = a + (-t6 / mass_per_inertia - a * a * total) / (a * total - moment)
+        else:
+            a, b = _geometry_of(self.coefficients_[:6])
         rear = (a * total - moment) / (a + b)
         front = total - rear
         names = (
-            coefficient_names(self.normalizer_.input_names)
+            coefficient_names(self._internal_names(self.normalizer_))
             if hasattr(self, "normalizer_")
             else coefficient_names(("steer_wheel_deg", "pedal"))
         )
@@ -380,9 +580,10 @@ class SingleTrack(Learner):
         return x
 
     def _features(self, inputs: np.ndarray) -> np.ndarray:
-        """The inputs as the model is linear in them (before a fit: the sedan's)."""
+        """The inputs as the model is linear in them, steering first (before a fit: the
+        sedan's)."""
         if hasattr(self, "normalizer_"):
-            return self.normalizer_.input_features(inputs)
+            return self._internal(self.normalizer_.input_features(inputs))
         return input_features(inputs, SEDAN_INPUTS)
 
     # -- the LinearizableModel contract (normalized units) ----------------------------------
@@ -394,7 +595,7 @@ class SingleTrack(Learner):
         """One period in normalized units (no stop at vx = 0: the smooth model the MPC sees)."""
         state_span, state_min, input_span, input_min = self._coordinates()
         x = z * state_span + state_min
-        u = v * input_span + input_min
+        u = self._internal(v * input_span + input_min)
         if x.ndim == 1 and self._floats:  # the MPC's rollout, one point: floats, not 0-d arrays
             point = x.tolist()
             h = self.dt_ / self.substeps_
@@ -422,7 +623,7 @@ class SingleTrack(Learner):
         """The derivative of :meth:`step` (every sub-step's Jacobian, chained) at K points."""
         state_span, state_min, input_span, input_min = self._coordinates()
         z, v = np.atleast_2d(z), np.atleast_2d(v)
-        x, u = z * state_span + state_min, v * input_span + input_min
+        x, u = z * state_span + state_min, self._internal(v * input_span + input_min)
         h = self.dt_ / self.substeps_
         jac_x = np.broadcast_to(np.eye(3), (len(x), 3, 3)).copy()
         jac_u = np.zeros((len(x), 3, u.shape[1]))
@@ -432,6 +633,7 @@ class SingleTrack(Learner):
             jac_x = step @ jac_x
             jac_u = step @ jac_u + h * ju
             x = x + h * self.derivative(x, u)
+        jac_u = jac_u[..., list(self._layout[2])] if self._layout else jac_u  # the data's order
         A = jac_x * state_span[None, :] / state_span[:, None]
         B = jac_u * input_span[None, :] / state_span[:, None]
         d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
@@ -476,6 +678,42 @@ def _spans(normalizer: MinMaxNormalizer) -> tuple[np.ndarray, np.ndarray]:
     state_span = normalizer.states_inverse(np.ones(3)) - normalizer.states_inverse(np.zeros(3))
     low, high = np.asarray(normalizer.input_min), np.asarray(normalizer.input_max)
     return state_span, np.where(high - low > 1e-12, high - low, 1.0)
+
+
+def _geometry_of(form: Sequence[float] | np.ndarray) -> tuple[float, float]:
+    """a and b recovered from θ_1 .. θ_6: a = θ_4 / (k θ_1) with k = m / I_z = θ_5 / θ_3; b
+    from C_f + C_r, a C_f − b C_r and a² C_f + b² C_r."""
+    t1, t2, t3, t4, t5, t6 = (float(v) for v in form)
+    mass_per_inertia = t5 / t3 if t3 else float("nan")
+    total, moment = -t2, -t3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = t4 / (mass_per_inertia * t1) if t1 else float("nan")
+        denominator = a * total - moment
+        b = a + (-t6 / mass_per_inertia - a * a * total) / denominator if denominator else a
+    return a, b
+
+
+def _signed_lstsq(
+    regressors: np.ndarray, target: np.ndarray, bounds: Sequence[tuple[float, float] | None]
+) -> tuple[np.ndarray, list[int]]:
+    """Least squares with each coefficient in its bounds (None: held at 0), and the indices of
+    those held at a bound. The plain solution where it keeps every sign (the same bits as an
+    unbounded fit); else the bounded one. A regressor that is 0 throughout (a brake column
+    never negative) has nothing to fit: its coefficient is 0."""
+    used = np.any(regressors != 0, axis=0)
+    free = [i for i, bound in enumerate(bounds) if bound is not None and used[i]]
+    low = np.array([bounds[i][0] for i in free])  # type: ignore[index]
+    high = np.array([bounds[i][1] for i in free])  # type: ignore[index]
+    solution = np.zeros(len(bounds))
+    columns = regressors if len(free) == len(bounds) else regressors[:, free]
+    plain = _lstsq(columns, target)
+    if np.all((plain >= low) & (plain <= high)):
+        solution[free] = plain
+        return solution, []
+    bounded = lsq_linear(columns, target, bounds=(low, high), method="bvls").x
+    solution[free] = bounded
+    held = [free[k] for k in np.flatnonzero((bounded == low) | (bounded == high))]
+    return solution, held
 
 
 def _lstsq(regressors: np.ndarray, target: np.ndarray) -> np.ndarray:

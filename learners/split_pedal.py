@@ -40,6 +40,7 @@ from learners.base import (
 __all__ = ["SplitPedal", "pedal_column", "split_inputs", "split_normalizer", "split_pedal"]
 
 SPLIT_NAMES = ("throttle", "brake")
+SPLIT_ROLES = ("drive", "brake")
 
 
 def pedal_column(names: Sequence[str], pedal: str, source: str) -> int:
@@ -71,7 +72,12 @@ def _split_column(values: np.ndarray, column: int) -> np.ndarray:
 
 def split_channels(channels: Sequence[InputChannel], column: int) -> tuple[InputChannel, ...]:
     kept = [c for i, c in enumerate(channels) if i != column]
-    return (*kept, *(InputChannel(name) for name in SPLIT_NAMES))
+    # The pedal's positive part drives and its negative part brakes, each >= 0 (the sedan's
+    # in [0, 1] of its side's range).
+    return (
+        *kept,
+        *(InputChannel(n, role=r) for n, r in zip(SPLIT_NAMES, SPLIT_ROLES, strict=True)),
+    )
 
 
 def split_pedal(episode: Episode, pedal: str = "pedal") -> Episode:
@@ -156,9 +162,9 @@ class SplitPedal(Learner):
     def check_size(self, episode_frames: int, n: int = STATE_DIM, m: int = INPUT_DIM) -> None:
         self.inner.check_size(episode_frames, n, m + 1)
 
-    def check_input_names(self, names: Sequence[str]) -> None:
+    def check_inputs(self, channels: Sequence[InputChannel]) -> None:
         """The pedal named in ``learner.pedal`` among the data's inputs, before any data."""
-        pedal_column(names, self.pedal, "the data config")
+        pedal_column([c.name for c in channels], self.pedal, "the data config")
 
     @property
     def core(self) -> Learner:

@@ -438,6 +438,42 @@ def test_the_pipeline_runs_on_logs_and_skips_what_needs_their_car(tmp_path: Path
     )
 
 
+def test_the_physics_baseline_on_logs_without_roles_is_refused_before_they_are_read(
+    tmp_path: Path,
+) -> None:
+    """learner=single_track needs to know which input steers and which brakes: one line naming
+    the key to set, no data read; the preset's roles pass the same check."""
+    from hydra.utils import instantiate
+
+    from harness.tasks.pipeline import Pipeline
+
+    def pipeline(*overrides: str) -> Pipeline:
+        with initialize_config_module(config_module="conf", version_base=None):
+            cfg = compose(
+                "config",
+                overrides=[
+                    "data=ddk_carsim",
+                    f"data.path={tmp_path / 'absent'}",
+                    "learner=single_track",
+                    *overrides,
+                ],
+            )
+        return Pipeline(cfg.data, instantiate(cfg.learner, _convert_="object"), "single_track")
+
+    assert pipeline().data.channels[2].role == "brake"  # the preset declares every role
+    with pytest.raises(ValueError) as info:
+        pipeline("data.inputs.brake_mpa.role=null")
+    assert str(info.value).startswith(
+        "single_track: input 'brake_mpa' declares no role, so the physics baseline cannot tell "
+        "whether it steers, drives or brakes: set data.inputs.brake_mpa.role to one of "
+    )
+    with pytest.raises(ValueError, match=r"data\.inputs\.throttle: role must be one of"):
+        pipeline("data.inputs.throttle.role=gas")
+    with pytest.raises(ValueError, match=r"a steering input's unit must be deg or rad"):
+        pipeline("data.inputs.front_wheel_angle_rad.unit=null")
+    assert not (tmp_path / "absent").exists()
+
+
 def test_logs_the_plant_made_are_tracked_on_it_when_the_user_says_so(tmp_path: Path) -> None:
     """Drives of our sedan exported as CSV and read back through a user's YAML (the one file a
     user writes, found with ``-cd``): with ``task.logs_from_plant=true`` the pipeline runs the
@@ -460,7 +496,8 @@ def test_logs_the_plant_made_are_tracked_on_it_when_the_user_says_so(tmp_path: P
         "defaults:\n  - logs_schema\n  - _self_\nname: sedan_logs\n"
         f"path: {logs}\nfiles: ['drive_*.csv']\ntime: {{column: t}}\n"
         "states: {vx: {column: vx}, vy: {column: vy}, yaw_rate: {column: r}}\n"
-        "inputs: {steer_wheel_deg: {column: steer_wheel_deg}, pedal: {column: pedal}}\n"
+        "inputs: {steer_wheel_deg: {column: steer_wheel_deg, role: steering_wheel, unit: deg},"
+        " pedal: {column: pedal, role: pedal}}\n"
         "poses: {X: {column: X}, Y: {column: Y}, yaw: {column: yaw}}\n"
         "split: {train: [drive_0.csv, drive_1.csv], validation: [drive_2.csv], "
         "test: [drive_3.csv]}\n"
@@ -507,6 +544,7 @@ def test_logs_the_plant_made_are_tracked_on_it_when_the_user_says_so(tmp_path: P
     assert np.isfinite(list(metrics["tracking"]["rmse"].values())).all()
     assert metrics["tracking"]["references"]["test_episode/drive_3"]["rmse"]
     assert set(metrics["tracking"]["controllers"]) == {"de_mpc", "bicycle_mpc"}
+    assert "skipped" not in metrics["tracking"]["controllers"]["bicycle_mpc"]  # by its roles
 
     # A column given as a bare name where the schema wants {column: ...}: one line, its key.
     yaml = conf / "sedan_logs.yaml"

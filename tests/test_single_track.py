@@ -3,6 +3,7 @@ linearisation is its step's derivative, and it is a learner and a linearizable m
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 from harness.core.contracts import LinearizableModel
 from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
 from learners.base import load
-from learners.single_track import SingleTrack
+from learners.single_track import GEOMETRY_BOUNDS_M, InputLayout, SingleTrack
 
 TRUE = {
     "front_per_mass": 75.0,  # C_f / m: 112 kN/rad on 1500 kg
@@ -103,30 +104,137 @@ def test_the_discrete_model_is_stable_at_every_period_up_to_100_ms(dt: float) ->
         assert model.substeps_ == 1  # the sedan's 10 ms: the plain Euler step, as before
 
 
-def test_any_number_of_inputs_with_the_steering_first() -> None:
-    """Logs with steering in radians and separate throttle and brake columns: the same car
-    (one radian of road wheel = 16 x 57.3 degrees of steering wheel) is identified again."""
-    truth = known_model()
-    episodes = drives(truth)
-    channels = (
-        InputChannel("front_wheel_angle_rad"),
-        InputChannel("throttle"),
-        InputChannel("brake_mpa"),
-    )
+ROAD_CAR = (
+    InputChannel("throttle", role="drive", unit="fraction"),
+    InputChannel("front_wheel_angle_rad", role="road_wheel", unit="rad"),
+    InputChannel("brake_mpa", role="brake", unit="MPa"),
+)
+
+
+def as_logs(
+    episodes: list[Episode], channels: tuple[InputChannel, ...] = ROAD_CAR
+) -> list[Episode]:
+    """The sedan's drives as another car's logs: throttle, road-wheel angle in radians (one
+    radian of road wheel = 16 x 57.3 degrees of steering wheel) and brake pressure, in that
+    order: the steering is not the first input."""
     logs = []
     for e in episodes:
         pedal = SEDAN_INPUTS[1].feature(e.inputs[:, 1])
         inputs = np.column_stack(
-            [np.deg2rad(e.inputs[:, 0]) / 16.0, np.maximum(pedal, 0), np.maximum(-pedal, 0)]
+            [np.maximum(pedal, 0), np.deg2rad(e.inputs[:, 0]) / 16.0, np.maximum(-pedal, 0)]
         )
         logs.append(Episode(e.name, e.time_s, e.states, inputs, e.poses, channels))
+    return logs
+
+
+def test_any_number_of_inputs_in_any_order_by_their_roles() -> None:
+    """The same car is identified again from its roles, whatever the columns' order."""
+    truth = known_model()
+    episodes = drives(truth)
+    logs = as_logs(episodes)
     fitted = SingleTrack(max_lateral_accel_mps2=100.0).fit(logs, [], MinMaxNormalizer.fit(logs))
     assert fitted.parameters["steering_ratio"] == pytest.approx(1.0, rel=1e-6)  # per wheel rad
     np.testing.assert_allclose(fitted.coefficients_[1:3], truth.coefficients_[1:3], rtol=1e-6)
+    assert fitted.parameters["brake_mpa_on"] < 0 < fitted.parameters["throttle_on"]
+    assert fitted.parameters["brake_mpa_on_power"] == 0.0  # a brake does no work per speed
+    assert fitted.fit_summary["bounded"] == []  # the physics' signs held without bounds
     x0, u = logs[0].states[0], logs[0].inputs[:300]
     np.testing.assert_allclose(
         fitted.predict(x0, u), truth.predict(x0, episodes[0].inputs[:300]), rtol=1e-6, atol=1e-9
     )
+    # The linearisation takes the data's column order too: B's columns are the data's.
+    z, v = fitted.lift(logs[0].states[100]), fitted.normalizer_.inputs(logs[0].inputs[100])
+    _, B, _ = fitted.linearize(z, v)
+    h = 1e-6
+    for j in range(3):
+        e = np.eye(3)[j] * h
+        column = (fitted.step(z, v + e) - fitted.step(z, v - e)) / (2 * h)
+        np.testing.assert_allclose(B[0][:, j], column, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("channels", "message"),
+    [
+        (
+            (InputChannel("throttle"), *ROAD_CAR[1:]),
+            r"input 'throttle' declares no role, .* set data\.inputs\.throttle\.role to one of",
+        ),
+        (
+            (ROAD_CAR[0], ROAD_CAR[1], InputChannel("rear_angle", role="road_wheel", unit="rad")),
+            r"exactly one steering input .* declares 2 \(front_wheel_angle_rad, rear_angle\)",
+        ),
+    ],
+)
+def test_inputs_whose_roles_do_not_say_what_steers_are_refused_in_one_line(
+    channels: tuple[InputChannel, ...], message: str
+) -> None:
+    logs = as_logs(drives(known_model(), count=1, steps=400), channels)
+    with pytest.raises(ValueError, match=message):
+        SingleTrack().check_inputs(channels)
+    with pytest.raises(ValueError, match=message):
+        SingleTrack().fit(logs, [], MinMaxNormalizer.fit(logs))
+
+
+def test_a_brake_that_would_accelerate_is_held_at_zero_and_named(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Drives in which pressing the brake speeds the car up (a logger's columns swapped, or
+    braking that coincides with downhill): least squares would say so; physics does not."""
+    truth = known_model()
+    bent = []
+    for e in as_logs(drives(truth)):  # vx gains 15 m/s² per unit of "brake": net, it speeds up
+        states = e.states.copy()
+        states[1:, 0] += np.cumsum(15.0 * e.inputs[:-1, 2] * truth.dt_)
+        bent.append(dataclasses.replace(e, states=states))
+    fitted = SingleTrack(max_lateral_accel_mps2=100.0).fit(bent, [], MinMaxNormalizer.fit(bent))
+    assert fitted.fit_summary["bounded"] == ["brake_mpa_on"]
+    assert fitted.parameters["brake_mpa_on"] == 0.0 and fitted.parameters["throttle_on"] >= 0
+    (said,) = [r.getMessage() for r in caplog.records if "sign physics forbids" in r.getMessage()]
+    assert said.startswith("single_track: the least-squares fit gave brake_mpa_on the sign")
+
+
+def test_a_model_file_from_before_roles_keeps_its_layout() -> None:
+    """No role anywhere in a fitted model's inputs: the first input steered, as it was fitted."""
+    layout = InputLayout.of(
+        (InputChannel("delta_deg"), InputChannel("a"), InputChannel("b")), fitting=False
+    )
+    assert layout.order == (0, 1, 2) and layout.steer_to_rad == pytest.approx(np.pi / 180)
+    with pytest.raises(ValueError, match="declares no role"):
+        InputLayout.of((InputChannel("delta_deg"), InputChannel("a")))
+
+
+def test_logs_of_another_car_with_the_sedans_geometry_say_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    logs = as_logs(drives(known_model(), count=1, steps=600))
+    SingleTrack(mass_kg=2000.0).fit(logs, [], MinMaxNormalizer.fit(logs))
+    (said,) = [r.getMessage() for r in caplog.records if "sedan's" in r.getMessage()]
+    assert said.startswith("single_track: these inputs are not the sedan's, but cg_to_front_m, ")
+    assert "mass_kg" not in said  # given: not the default
+    caplog.clear()
+    episodes = drives(known_model(), count=1, steps=600)  # the sedan's own drives: silent
+    SingleTrack().fit(episodes, [], MinMaxNormalizer.fit(episodes))
+    assert not [r for r in caplog.records if "sedan's" in r.getMessage()]
+
+
+def test_axles_the_data_cannot_separate_are_identified_within_a_road_cars_bounds(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A model whose a and b are a bus's (5 m, 6 m): the free fit's a and b are outside what the
+    baseline takes for a road car, so a and b are fitted within the bounds and it says so."""
+    bus = SingleTrack.of_physics(TRUE, 0.01, a=5.0, b=6.0)
+    episodes = drives(bus, count=2, steps=1500)
+    fitted = SingleTrack(cg_to_front_m=None, cg_to_rear_m=None, max_lateral_accel_mps2=100.0).fit(
+        episodes, [], MinMaxNormalizer.fit(episodes)
+    )
+    low, high = GEOMETRY_BOUNDS_M
+    physics = fitted.parameters
+    for key in ("cg_to_front_m", "cg_to_rear_m"):  # recovered from θ: to a float's rounding
+        assert low - 1e-9 <= physics[key] <= high + 1e-9
+    assert fitted.fit_summary["geometry_bounded"] is True
+    (said,) = [r.getMessage() for r in caplog.records if "cannot separate" in r.getMessage()]
+    assert said.startswith("single_track: the data gives a = ")
+    assert "outside [0.5, 3.5] m: it cannot separate the axles" in said
 
 
 def test_the_linearisation_is_the_derivative_of_the_normalized_step() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -16,17 +17,37 @@ from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
 POSE_NAMES = ("X", "Y", "yaw")
 
 
+# What an input is, for a model that knows physics (the single-track baseline): the steering at
+# the steering wheel or at the road wheel (unit deg or rad), a drive (force, torque or throttle:
+# more of it accelerates), a brake (more of it decelerates, whatever its unit), or the sedan's
+# signed pedal (drive above zero, brake below).
+STEERING_ROLES = ("steering_wheel", "road_wheel")
+ROLES = (*STEERING_ROLES, "drive", "brake", "pedal")
+ANGLE_UNITS = {"deg": math.pi / 180.0, "rad": 1.0}
+
+
 @dataclass(frozen=True)
 class InputChannel:
     """One input column as the models see it: its name and the gains that turn it into the
     feature they are fitted in (``value * gain_positive`` where value >= 0, ``value *
     gain_negative`` below). A dataset describes its inputs with these: the sedan's pedal is
     throttle opening above zero and brake pressure below, each scaled to [-1, 1]; a column of a
-    user's log is taken as it is (gains 1)."""
+    user's log is taken as it is (gains 1).
+
+    ``role`` (one of :data:`ROLES`) and ``unit`` say what the input is, for the physics
+    baseline and the figures; they describe the column, they do not change its values, so two
+    channels that differ only in them compare equal (a model file from before roles were
+    described is the same model).
+    """
 
     name: str
     gain_positive: float = 1.0
     gain_negative: float = 1.0
+    role: str | None = dataclasses.field(default=None, compare=False)
+    unit: str | None = dataclasses.field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        check_role(f"input {self.name}", self.role, self.unit)
 
     def feature(self, value: np.ndarray) -> np.ndarray:
         value = np.asarray(value, dtype=float)
@@ -36,14 +57,50 @@ class InputChannel:
         feature = np.asarray(feature, dtype=float)
         return np.where(feature >= 0, feature / self.gain_positive, feature / self.gain_negative)
 
+    def to_dict(self) -> dict[str, Any]:
+        """Name and gains; role and unit where declared (older files have neither)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
+
+
+def check_role(key: str, role: str | None, unit: str | None) -> None:
+    """A role of :data:`ROLES` or none; a steering input's unit is an angle's (deg or rad)."""
+    if role is not None and role not in ROLES:
+        raise ValueError(f"{key}: role must be one of {', '.join(ROLES)} (got {role!r})")
+    if role in STEERING_ROLES and unit not in ANGLE_UNITS:
+        raise ValueError(f"{key}: a steering input's unit must be deg or rad (got {unit!r})")
+    if unit is not None and not (isinstance(unit, str) and unit):
+        raise ValueError(f"{key}: unit must be a word such as N*m, bar or deg (got {unit!r})")
+
 
 # The sedan's inputs (``harness.core.contracts.INPUT_NAMES``): the paper's per-step increments
 # (throttle 0.004, brake 0.18 MPa) are both ~0.02 on the pedal's signed scale, and throttle no
 # longer occupies 2 % of the pedal's range after min-max normalization.
 SEDAN_INPUTS: tuple[InputChannel, ...] = (
-    InputChannel(INPUT_NAMES[0]),
-    InputChannel(INPUT_NAMES[1], 1.0 / THROTTLE_MAX, 1.0 / BRAKE_MAX_MPA),
+    InputChannel(INPUT_NAMES[0], role="steering_wheel", unit="deg"),
+    InputChannel(
+        INPUT_NAMES[1],
+        1.0 / THROTTLE_MAX,
+        1.0 / BRAKE_MAX_MPA,
+        role="pedal",
+        unit="throttle 0..0.2 / -brake MPa",
+    ),
 )
+
+
+def channels_from_dicts(described: Sequence[Mapping[str, Any]] | None) -> tuple[InputChannel, ...]:
+    """The channels :meth:`InputChannel.to_dict` wrote; none (a file from before inputs were
+    described) are the sedan's, and a sedan channel written before roles gets its role."""
+    if described is None:
+        return SEDAN_INPUTS
+    sedan = {channel.name: channel for channel in SEDAN_INPUTS}
+    channels = []
+    for values in described:
+        channel = InputChannel(**dict(values))
+        known = sedan.get(channel.name)
+        if channel.role is None and known is not None and channel == known:
+            channel = known
+        channels.append(channel)
+    return tuple(channels)
 
 
 @dataclass(frozen=True)
@@ -198,7 +255,7 @@ class MinMaxNormalizer:
 
     def to_dict(self) -> dict[str, Any]:
         values: dict[str, Any] = {k: np.asarray(getattr(self, k)).tolist() for k in _RANGES}
-        values["inputs"] = [dataclasses.asdict(c) for c in self.channels]
+        values["inputs"] = [c.to_dict() for c in self.channels]
         return values
 
     @classmethod
@@ -206,11 +263,7 @@ class MinMaxNormalizer:
         """The normalizer :meth:`to_dict` wrote; one without ``inputs`` (written before inputs
         were described) is the sedan's."""
         ranges = {k: np.asarray(values[k], dtype=float) for k in _RANGES}
-        described = values.get("inputs")
-        channels = (
-            SEDAN_INPUTS if described is None else tuple(InputChannel(**dict(c)) for c in described)
-        )
-        return cls(**ranges, channels=channels)
+        return cls(**ranges, channels=channels_from_dicts(values.get("inputs")))
 
     def same_as(self, other: MinMaxNormalizer) -> bool:
         """Equal to the last bit: the same training drives give the same min and max."""

@@ -33,7 +33,13 @@ import numpy as np
 
 from harness.core.checks import integer, positive
 from harness.core.contracts import STATE_NAMES
-from harness.core.episode import POSE_NAMES, Episode, InputChannel, MinMaxNormalizer
+from harness.core.episode import (
+    POSE_NAMES,
+    Episode,
+    InputChannel,
+    MinMaxNormalizer,
+    check_role,
+)
 from harness.core.files import write_atomic
 from harness.data.store import (
     SPLITS,
@@ -60,11 +66,16 @@ class Column:
 
     ``column``: a name (CSV header, Parquet column, ``.npz``/``.mat`` variable) or a 0-based
     index (a CSV without header, or the columns of ``LogsConfig.array``). ``scale`` multiplies
-    the values (1/3.6 for km/h, pi/180 for degrees to rad).
+    the values (1/3.6 for km/h, pi/180 for degrees to rad). An input may say what it is:
+    ``role`` (steering_wheel, road_wheel, drive, brake or pedal) and ``unit`` after ``scale``
+    (deg or rad for steering; any word otherwise, such as N*m or bar): the physics baseline
+    needs the roles, and the figures draw inputs of one unit on one axis.
     """
 
     column: Any = None
     scale: float = 1.0
+    role: str | None = None
+    unit: str | None = None
 
     def check(self, key: str) -> None:
         index = isinstance(self.column, int) and not isinstance(self.column, bool)
@@ -72,6 +83,14 @@ class Column:
             raise ValueError(f"{key}.column must be a column name or an index >= 0")
         if not (isinstance(self.scale, int | float) and math.isfinite(self.scale) and self.scale):
             raise ValueError(f"{key}.scale must be a finite number other than 0")
+        if self.role is not None and not key.startswith("data.inputs."):
+            raise ValueError(f"{key}.role: only inputs have a role (states and time do not)")
+        check_role(key, self.role, self.unit)
+
+    def content(self) -> dict[str, Any]:
+        """Its fields, without a role or unit left undeclared (so the store keys of logs from
+        before roles were described stay as they were)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None or k == "column"}
 
 
 @dataclass
@@ -158,13 +177,20 @@ class LogsConfig:
 
     @property
     def channels(self) -> tuple[InputChannel, ...]:
-        return tuple(InputChannel(name) for name in self.inputs)
+        return tuple(
+            InputChannel(name, role=column.role, unit=column.unit)
+            for name, column in self.inputs.items()
+        )
 
     def content(self) -> dict[str, Any]:
         """The fields that determine the episodes (not where the files or the store are)."""
         values = dataclasses.asdict(self)
         for transient in ("root", "record_every", "name", "path", "state_limits"):
             values.pop(transient)
+        for group in ("states", "inputs", "poses"):
+            values[group] = {k: c.content() for k, c in getattr(self, group).items()}
+        if self.time is not None:
+            values["time"] = self.time.content()
         return values
 
 
@@ -554,7 +580,7 @@ def import_logs(logs: LogsConfig) -> Path:
             "data": logs.content(),
             "files": digests,
             "period_s": period,
-            "inputs": [dataclasses.asdict(c) for c in logs.channels],
+            "inputs": [c.to_dict() for c in logs.channels],
             "episodes": dict(sorted(entries.items())),
             "split": split,
             "normalizer": MinMaxNormalizer.fit(train).to_dict(),

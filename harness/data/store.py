@@ -68,7 +68,13 @@ from tqdm import tqdm
 
 from harness.core.checks import integer
 from harness.core.contracts import Plant
-from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
+from harness.core.episode import (
+    SEDAN_INPUTS,
+    Episode,
+    InputChannel,
+    MinMaxNormalizer,
+    channels_from_dicts,
+)
 from harness.core.files import write_atomic, write_text_atomic
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
 from harness.plant.native import cache_dir
@@ -669,7 +675,7 @@ def _load_episode(directory: Path, name: str, manifest: Mapping[str, Any]) -> Ep
     both must go for the collection to drive the episode again."""
     path = directory / manifest["episodes"][name]["file"]
     described = manifest.get("inputs")  # a dataset of logs: its own inputs; else the sedan's
-    channels = SEDAN_INPUTS if described is None else tuple(InputChannel(**c) for c in described)
+    channels = channels_from_dicts(described)
     try:
         return _read_episode(path, name, channels)
     except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:

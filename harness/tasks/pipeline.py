@@ -49,7 +49,7 @@ from controllers.as_controlled import AsControlled
 from controllers.config import ControllerFactory, OwnModelFactory
 from harness.core.checks import integer, is_number
 from harness.core.contracts import INPUT_NAMES, LiftedModel, Model, dynamics_of
-from harness.core.episode import Episode
+from harness.core.episode import SEDAN_INPUTS, Episode
 from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
@@ -125,10 +125,10 @@ class Pipeline:
         self.loaded = self._load(model_path, learner, learner_name)
         if self.loaded is None:
             if isinstance(self.data, DataConfig):
-                learner.check_input_names(INPUT_NAMES)
+                learner.check_inputs(SEDAN_INPUTS)
                 learner.check_size(self.data.max_steps)  # logs: once read, before the fit
             else:
-                learner.check_input_names(list(self.data.inputs))  # the logs' column map
+                learner.check_inputs(self.data.channels)  # the logs' column map
         # A window of one step is its measured first state only: no prediction to score.
         integer("task.prediction_window_steps", prediction_window_steps, 2)
         windows = (
