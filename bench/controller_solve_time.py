@@ -38,9 +38,9 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-# The implementation issue 22 set out to speed up (the last commit before its item 1).
+# The implementation before the real-time iteration and the faster QPs (the comparison's base).
 BASE_COMMIT = "35feb0485a809d40155c0d6fe746e2e8e7fe63b8"
-# Issue 22's targets for the feedback phase (ms): median, p99, max at 60/50; median at 10/7;
+# The targets for the feedback phase (ms): median, p99, max at 60/50; median at 10/7;
 # median for the models with three states.
 TARGETS_MS = {"60/50": (1.0, 2.0, 5.0), "10/7": (0.2, None, None)}
 SMALL_MEDIAN_MS = 0.3
@@ -238,7 +238,7 @@ def _times(times: dict[str, float] | None) -> str:
 
 
 def _mark(result: dict[str, Any], horizon: str) -> str:
-    """✓ where the feedback phase meets issue 22's targets, ✗ where it does not."""
+    """✓ where the feedback phase meets the targets (TARGETS_MS), ✗ where it does not."""
     median_max, p99_max, max_max = TARGETS_MS[horizon]
     if result["N"] <= 3 and horizon == "60/50":
         median_max = SMALL_MEDIAN_MS
@@ -359,7 +359,7 @@ def main() -> None:
         if base is not None:
             base.close()
     print(
-        f"\nload average {os.getloadavg()[0]:.2f} at the end. Targets (issue 22, feedback phase): "
+        f"\nload average {os.getloadavg()[0]:.2f} at the end. Targets (feedback phase): "
         "60/50 median <= 1 ms (<= 0.3 ms for N = 3), p99 <= 2 ms, max <= 5 ms; 10/7 median "
         "<= 0.2 ms (✓/✗). Ratios: base / new whole steps (preparation + feedback), the same "
         "case back to back."

@@ -1,8 +1,8 @@
 """The time-varying MPC's QP, condensed (ours) against sparse multiple shooting, on the same QPs.
 
 ``python -m bench.qp_formulation [--quick] [--models DIR] [--learners bilinear_edmd,input_edmd]``.
-Issue 22 item 2 asks which formulation a linearised lifted model (N ≈ 100) should be solved in.
-This is its controlled experiment: one factor, the formulation, on exactly the same problems.
+Which formulation should a linearised lifted model (N ≈ 100) be solved in? This is the
+controlled experiment: one factor, the formulation, on exactly the same problems.
 
 DE-MPC closes the loop on the sedan through the 80 km/h ISO 3888-1 lane change at 60/50
 (tracking states, ``linearization: predicted``: a model A_k, B_k, d_k per horizon step, the

@@ -14,7 +14,7 @@ faster run is kept (this machine is shared).
   ``torch.optim.Adam``; the same window sampling and thread count; warm-up excluded.
 - Bilinear Deep EDMD (``conf/learner/bilinear_deep_edmd.yaml``'s settings: H trained inside the
   losses, then the least-squares refit): ``fit`` as Deep EDMD's, against Deep EDMD's own time
-  per batch (issue 13's target: at most 1.3x); the refit is in its setup time.
+  per batch (the target: at most 1.3x); the refit is in its setup time.
 - EDMD / ELM-EDMD: the whole fit on the 7e5 frames (paper default sizes), ours (streamed QR
   least squares) against the paper's formula [A B] = V W^T (W W^T)^+ with an explicit pinv.
 """

@@ -1,4 +1,4 @@
-"""Shared fixtures: plants and their characterization are built once per test session."""
+"""Shared fixtures: plants and their characterization are built once per test run."""
 
 from __future__ import annotations
 

@@ -170,7 +170,7 @@ def test_a_long_override_list_still_makes_a_valid_distinct_job_directory() -> No
 def test_a_directory_another_run_holds_is_refused_before_anything_is_written(
     tmp_path: Path, mode: list[str], key: str
 ) -> None:
-    """Two runs in one directory mixed their metrics, models and figures (issue 26)."""
+    """Two runs in one directory mixed their metrics, models and figures."""
     run_dir = (tmp_path / "run").resolve()
     run_dir.mkdir()
     held = try_lock(run_dir / ".lock")  # the run writing there now (another open file)

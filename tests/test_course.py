@@ -1,4 +1,4 @@
-"""The lane change judged by where the car went: cones, lateral deviation, exit (issue 12)."""
+"""The lane change judged by where the car went: cones, lateral deviation, exit."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Fail before the expensive part, in one line naming the key; never score a broken run.
 
-Each check here failed on the code before issue 14: controller, reference and extra-controller
+Each check here failed on an earlier version of the code: controller, reference and extra-controller
 values were checked only after data and training (or named the wrong key), a controller period
 other than the plant's ran, a diverged MuJoCo simulation scored perfectly, a model file of
 another learner was reported as the configured one, absurd sizes grew memory until killed, and
@@ -80,7 +80,7 @@ def build_as_the_app(*overrides: str) -> None:
             ["task.references.double_lane_change.speed_mps=-1"],
             "task.references.double_lane_change.speed_mps must be >= 1 m/s (got -1)",
         ),
-        (  # 1.6 million steps: 11 minutes and 78 MB of recording before (issue 26)
+        (  # 1.6 million steps: 11 minutes and 78 MB of recording before
             ["task.references.double_lane_change.speed_mps=0.01"],
             "task.references.double_lane_change.speed_mps must be >= 1 m/s (got 0.01)",
         ),
@@ -146,7 +146,7 @@ def build_as_the_app(*overrides: str) -> None:
             ["controller.Np=100000", "controller.Nc=100000"],
             "controller.Np and controller.Nc: the condensed QP of Np = 100000, Nc = 100000",
         ),
-        (  # fits in memory, but its Hessian overflowed after training before (issue 26)
+        (  # fits in memory, but its Hessian overflowed after training before
             ["controller.Np=100000", "controller.Nc=7"],
             "controller.Np (100000) spans 1000 s at controller.dt = 0.01 s; at most 10 s",
         ),
@@ -365,7 +365,7 @@ def test_the_qp_size_check_lets_the_papers_horizons_pass() -> None:
         DEMPCConfig(Np=10**12, Nc=7)
 
 
-# -- a model file is checked before any data, and its origin is compared (issue 26, 7 and 8) --
+# -- a model file is checked before any data, and its origin is compared --
 
 
 def test_a_model_file_with_nan_is_refused_before_any_data(edmd_file: Path, tmp_path: Path) -> None:
