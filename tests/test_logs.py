@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -599,3 +600,34 @@ def test_logs_of_two_periods_are_refused_and_leave_a_stored_dataset_as_it_was(
         import_logs(good)
     after = {p: p.read_bytes() for p in sorted((tmp_path / "store").rglob("*")) if p.is_file()}
     assert after == before and stored.is_dir()
+
+
+def test_the_schema_page_is_generated_from_the_config_and_its_examples_are_valid(
+    tmp_path: Path,
+) -> None:
+    """docs/guide/data_schema.md is what harness.data.schema writes; every example is a config
+    the schema accepts, and the CSV one, quoted '#' names and all, reads its logs."""
+    from harness.data.schema import EXAMPLES, PAGE, reference
+
+    assert PAGE.read_text() == reference() + "\n", "run python -m harness.data.schema"
+    configs = {}
+    for title, text in EXAMPLES.items():
+        values = OmegaConf.create(text)
+        del values["defaults"]
+        merged = OmegaConf.merge(OmegaConf.structured(LogsConfig), values)
+        configs[title] = OmegaConf.to_object(merged)
+        assert isinstance(configs[title], LogsConfig)
+    race = configs["CSV with a header whose names start with #"]
+    columns = ["#t_s", "#vx_mps", "#vy_mps", "#yawrate_degps", "#delta_rad", "#T_rl_Nm"]
+    columns += ["#T_rr_Nm", "#p_f_bar", "#p_r_bar"]
+    for lap in range(7):
+        table = drive(lap)
+        rows = np.column_stack([table[:, :4], table[:, 4:], table[:, 5:]])
+        text = ",".join(columns) + "\n" + "\n".join(",".join(f"{v:.17g}" for v in r) for r in rows)
+        (tmp_path / f"lap_{lap}.csv").write_text(text + "\n")
+    race = dataclasses.replace(race, path=str(tmp_path), root=str(tmp_path / "store"))
+    episode = read_log(tmp_path / "lap_0.csv", race)
+    assert episode.input_names[1:3] == ("torque_rl", "torque_rr")
+    assert [c.role for c in episode.channels] == ["road_wheel", "drive", "drive", "brake", "brake"]
+    np.testing.assert_allclose(episode.states[:, 2], np.deg2rad(drive(0)[:, 3]), rtol=1e-12)
+    assert import_logs(race).is_dir()

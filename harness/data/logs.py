@@ -72,10 +72,21 @@ class Column:
     needs the roles, and the figures draw inputs of one unit on one axis.
     """
 
-    column: Any = None
-    scale: float = 1.0
-    role: str | None = None
-    unit: str | None = None
+    column: Any = field(
+        default=None,
+        metadata={"doc": "a column name, or a 0-based index (quote a name that starts with #)"},
+    )
+    scale: float = field(
+        default=1.0, metadata={"doc": "multiplies the values: 1/3.6 for km/h, pi/180 for deg"}
+    )
+    role: str | None = field(
+        default=None,
+        metadata={"doc": "inputs only: steering_wheel, road_wheel, drive, brake or pedal"},
+    )
+    unit: str | None = field(
+        default=None,
+        metadata={"doc": "inputs only, after scale: deg or rad for steering; N*m, bar, … else"},
+    )
 
     def check(self, key: str) -> None:
         index = isinstance(self.column, int) and not isinstance(self.column, bool)
@@ -106,30 +117,65 @@ class LogsConfig:
     fractions (or whole counts, which must sum to the files) that ``seed`` deals the files into.
     """
 
-    name: str = "logs"
-    path: str = "???"
-    files: list[str] = field(default_factory=lambda: ["*.csv"])
-    array: str | None = None
-    time: Column | None = None
-    period_s: float | None = None
-    model_period_s: float | None = None
-    states: dict[str, Column] = field(default_factory=dict)
-    inputs: dict[str, Column] = field(default_factory=dict)
-    poses: dict[str, Column] = field(default_factory=dict)
-    split: dict[str, Any] = field(
-        default_factory=lambda: {"train": 0.8, "validation": 0.1, "test": 0.1}
+    name: str = field(default="logs", metadata={"doc": "the dataset's name in tables and titles"})
+    path: str = field(
+        default="???", metadata={"doc": "the directory `files` and `split` are relative to"}
     )
-    seed: int = 0
-    root: str | None = None  # None: $KOOPMAN_HARNESS_CACHE/datasets (~/.cache/koopman-harness)
-    record_every: int = 1  # decimation of the recording only
-    # The plausible range of each state after ``scale`` (SI): a value outside it (a logger's
-    # sentinel such as 999999, a column in km/h read as m/s) is refused naming file and row.
+    files: list[str] = field(
+        default_factory=lambda: ["*.csv"], metadata={"doc": "file names or globs under `path`"}
+    )
+    array: str | None = field(
+        default=None,
+        metadata={"doc": "`.npz`/`.mat`: the one 2-D variable holding every column (by index)"},
+    )
+    time: Column | None = field(
+        default=None, metadata={"doc": "the time column (s after `scale`); or give `period_s`"}
+    )
+    period_s: float | None = field(
+        default=None, metadata={"doc": "the sampling period (s) of logs without a time column"}
+    )
+    model_period_s: float | None = field(
+        default=None,
+        metadata={
+            "doc": "the models' period (s), a whole multiple of the sampling period: every k-th "
+            "sample is kept and its input held; null: the sampling period"
+        },
+    )
+    states: dict[str, Column] = field(
+        default_factory=dict,
+        metadata={"doc": "exactly vx, vy, yaw_rate: each a column (m/s, m/s, rad/s after scale)"},
+    )
+    inputs: dict[str, Column] = field(
+        default_factory=dict,
+        metadata={"doc": "any number of inputs, named by you, in the order the models take them"},
+    )
+    poses: dict[str, Column] = field(
+        default_factory=dict,
+        metadata={"doc": "optional X, Y, yaw (m, m, rad): only drawn"},
+    )
+    split: dict[str, Any] = field(
+        default_factory=lambda: {"train": 0.8, "validation": 0.1, "test": 0.1},
+        metadata={
+            "doc": "train, validation, test: each a list of file globs, or all three fractions, "
+            "or all three whole counts of files (summing to the files found), dealt by `seed`"
+        },
+    )
+    seed: int = field(default=0, metadata={"doc": "deals the files into a split by fractions"})
+    root: str | None = field(
+        default=None,
+        metadata={"doc": "the dataset store; null: $KOOPMAN_HARNESS_CACHE/datasets"},
+    )
+    record_every: int = field(default=1, metadata={"doc": "decimation of the recording only"})
     state_limits: dict[str, Any] = field(
         default_factory=lambda: {
             "vx": [-100.0, 150.0],
             "vy": [-50.0, 50.0],
             "yaw_rate": [-10.0, 10.0],
-        }
+        },
+        metadata={
+            "doc": "the plausible [low, high] of each state (SI): a value outside it (a logger's "
+            "999999, km/h read as m/s) is refused naming its file and row"
+        },
     )
 
     def __post_init__(self) -> None:
