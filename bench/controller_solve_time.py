@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from controllers.disturbance import OffsetFree
+
 REPO = Path(__file__).resolve().parents[1]
 # The implementation before the real-time iteration and the faster QPs (the comparison's base).
 BASE_COMMIT = "35feb0485a809d40155c0d6fe746e2e8e7fe63b8"
@@ -47,7 +49,7 @@ SMALL_MEDIAN_MS = 0.3
 HORIZONS = ("10/7", "60/50")
 MODES: dict[str, dict[str, Any]] = {
     "states": {},
-    "offset-free": {"offset_free": True},
+    "offset-free": {"disturbance": OffsetFree()},
     "path": {"reference": "path"},
 }
 # name: (conf/learner file, DEMPCConfig keys beyond the mode's)

@@ -21,6 +21,7 @@ from typing import Any
 
 from bench.machine import describe
 from controllers import BicycleMPCConfig, DEMPCConfig
+from controllers.disturbance import OffsetFree
 from harness.core.contracts import Model
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, collect_counted, load
@@ -65,7 +66,7 @@ def main() -> None:
             f"{reference_mode}{' offset-free' if offset_free else ''}",
             {
                 "reference": reference_mode,
-                "offset_free": offset_free,
+                "disturbance": OffsetFree() if offset_free else None,
             },
         )
         for reference_mode, offset_free in itertools.product(("states", "path"), (False, True))

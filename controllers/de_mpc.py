@@ -25,11 +25,12 @@ u_t = u_{t-1} + Δu_{t|t} is applied (eq. 21). Everything runs in the model's no
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any, cast
 
@@ -37,6 +38,7 @@ import numpy as np
 
 from controllers.blas import single_threaded
 from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
+from controllers.disturbance import DisturbanceEstimator
 from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from controllers.pedal_sides import PEDAL, PedalSides
@@ -45,7 +47,6 @@ from harness.core.checks import (
     boolean,
     choice,
     finite,
-    in_range,
     integer,
     is_number,
     positive,
@@ -150,11 +151,11 @@ class DEMPCConfig:
     # reference=path: diagonal weights on (vx, vy, yaw rate) errors, normalized as Q's, then on
     # the lateral error (per m²) and heading error (per rad²) to the path.
     Q_path: Any = (1000.0, 0.0, 300.0, 30.0, 300.0)
-    # Offset-free tracking: a constant disturbance w in the model's step, z⁺ = f(z, v) + w,
-    # estimated from each step's one-step prediction error, w += gain · (z − ẑ); gain in (0, 1],
-    # 1 holds the last step's error (the best of 0.02-1 at 10/7, docs/control.md).
-    offset_free: bool = False
-    offset_free_gain: float = 1.0
+    # A disturbance w in the model's step, z⁺ = f(z, v) + w, estimated from each step's one-step
+    # prediction error (controllers/disturbance.py): null, none (the paper's); a _target_ block
+    # such as {_target_: controllers.disturbance.OffsetFree, gain: 1.0} (offset-free tracking:
+    # w += gain · (z − ẑ)) or controllers.disturbance.KalmanDisturbance.
+    disturbance: Any = None
     # One side of the pedal at a time (controllers/pedal_sides.py; ours): the plan keeps to
     # the throttle (and coasting) or to the brake (and releasing) until its best on that side
     # still misses the reference's speed within the horizon by more than this (m/s); null:
@@ -204,9 +205,19 @@ class DEMPCConfig:
             self.sqp_iterations,
         )
         integer(key + "max_iter", self.max_iter)
+        if isinstance(self.disturbance, Mapping) and "_target_" in self.disturbance:
+            # The block as a schema check reads it (not yet built): build it, checking it.
+            from hydra.utils import instantiate
+
+            object.__setattr__(self, "disturbance", instantiate(self.disturbance))
+        if self.disturbance is not None and not isinstance(self.disturbance, DisturbanceEstimator):
+            raise ValueError(
+                "controller.disturbance must be null or an estimator block with a _target_ "
+                "(controllers/disturbance.py: OffsetFree, KalmanDisturbance), got "
+                f"{self.disturbance!r:.80}"
+            )
         for flag in (
             "active_set",
-            "offset_free",
             "real_time_iteration",
             "presolve",
             "release_brake",
@@ -216,7 +227,6 @@ class DEMPCConfig:
         choice(key + "linearization", self.linearization, LINEARIZATIONS)
         choice(key + "qp_solver", self.qp_solver, QP_SOLVERS)
         choice(key + "reference", self.reference, REFERENCES)
-        in_range(key + "offset_free_gain", self.offset_free_gain, 0.0, 1.0, open_low=True)
         if self.pedal_side_margin_mps is not None:
             positive(key + "pedal_side_margin_mps", self.pedal_side_margin_mps)
         self.secant_spans()
@@ -366,8 +376,8 @@ class DEMPC:
         vx_span = max(float(self.normalizer.state_max[0]) - vx_min, 1e-9)
         self._release_below = (RELEASE_BELOW_MPS - vx_min) / vx_span
         self._release_margin = RELEASE_MARGIN_MPS / vx_span
-        self.offset_free = bool(config.offset_free)
-        self.offset_free_gain = float(config.offset_free_gain)
+        # Its own estimator: the config's is a template, shared by every run it builds.
+        self.disturbance: DisturbanceEstimator | None = copy.deepcopy(config.disturbance)
         self._input_bounds = (settings["v_min"], settings["v_max"])
         margin = config.pedal_side_margin_mps
         self.pedal_sides = None if margin is None else PedalSides(margin, self._pedal_zero, vx_span)
@@ -431,7 +441,8 @@ class DEMPC:
         self._v_prev = self.normalizer.inputs(np.clip(u, self.u_min, self.u_max))
         self._plan: np.ndarray | None = None
         self._plan_step = 0
-        self._disturbance = np.zeros(self.C.shape[1])
+        if self.disturbance is not None:
+            self.disturbance.start(self.C.shape[1])
         if self.pedal_sides is not None:
             self.pedal_sides.reset(self._v_prev)
         self._z_expected: np.ndarray | None = None
@@ -573,14 +584,12 @@ class DEMPC:
         return self._feedback(self._prepared, z, v_prev, y_ref, w, where), shift
 
     def _estimate_disturbance(self, z: np.ndarray) -> np.ndarray | None:
-        """Offset-free: w moved by a share (``offset_free_gain``) of the last step's one-step
-        prediction error z − ẑ (ẑ with w), so a constant model error is learned and predicted
-        away; None when off."""
-        if not self.offset_free:
+        """The estimator's w after the last step's one-step prediction error z − ẑ (ẑ with w),
+        so a constant model error is learned and predicted away; None without an estimator."""
+        if self.disturbance is None:
             return None
-        if self._z_expected is not None:
-            self._disturbance = self._disturbance + self.offset_free_gain * (z - self._z_expected)
-        return self._disturbance
+        error = None if self._z_expected is None else z - self._z_expected
+        return self.disturbance.update(error)
 
     def _model_step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The model's own next lifted state (no disturbance)."""
@@ -652,7 +661,7 @@ class DEMPC:
             if pose is None:  # before the first step: no pose to locate the car by
                 return
             y_ref, where = self._path_reference(x, pose, y_ref)
-        w = self._disturbance if self.offset_free else None
+        w = self.disturbance.w if self.disturbance is not None else None
         with single_threaded():
             self._prepared = self._prepare_at(z, v_prev, y_ref, w, where)
             if self.config.presolve:  # warms the active-set solver; the answer is not used

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from controllers import DEMPCConfig, check_controller_config
+from controllers.disturbance import OffsetFree
 from harness.core.contracts import LiftedModel
 from harness.core.paths import CONF_DIR
 from harness.evaluation.tracking import TrackingTrajectory, track
@@ -167,7 +168,8 @@ def test_offset_free_under_delay_compares_each_measurement_with_its_prediction(m
     reference = np.vstack([start, np.tile(target, (1500, 1))])
     runs = {}
     for offset_free in (False, True):
-        controller = DEMPCConfig(compute_delay="one_step", offset_free=offset_free, Q=1000.0)
+        disturbance = OffsetFree() if offset_free else None
+        controller = DEMPCConfig(compute_delay="one_step", disturbance=disturbance, Q=1000.0)
         runs[offset_free] = track(
             plant,
             controller(model, plant.dt),

@@ -18,6 +18,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from controllers import DEMPCConfig
+from controllers.disturbance import DisturbanceEstimator
 from harness.config import validate
 from harness.core.contracts import Plant
 from harness.core.paths import CONF_DIR
@@ -169,7 +170,8 @@ def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_h
     long = cfg.task.extra_controllers.de_mpc_long
     assert (long.Np, long.Nc) == (60, 50)
     main_job = cfg.task.extra_controllers.de_mpc_path_long_offset_free  # the main job's, beside
-    assert (main_job.Np, main_job.reference, main_job.offset_free) == (60, "path", True)
+    assert (main_job.Np, main_job.reference) == (60, "path")
+    assert main_job.disturbance._target_ == "controllers.disturbance.OffsetFree"  # offset-free
 
 
 def test_random_layer_learners_are_their_base_learner_with_the_layer_on() -> None:
@@ -226,6 +228,7 @@ BUILDS: dict[str, type | tuple[type, ...]] = {
     "experiment": Pipeline,
     "recorder": functools.partial,
     "reference": Reference,
+    "disturbance": DisturbanceEstimator,
 }
 
 
@@ -242,6 +245,9 @@ def test_every_config_file_composes_validates_and_builds(group: str, name: str) 
     if group == "reference":  # a reference is built where a task lists it
         cfg = compose(f"+reference@task.references.probe={name}", as_app=True)
         node = cfg.task.references.probe
+    elif group == "disturbance":  # an estimator is built where a controller names it
+        cfg = compose(f"disturbance@controller.disturbance={name}", as_app=True)
+        node = cfg.controller.disturbance
     else:
         logs = group == "data" and "logs_schema" in (CONF_DIR / "data" / f"{name}.yaml").read_text()
         cfg = compose(f"{group}={name}", *(["data.path=."] if logs else []), as_app=True)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from controllers import DEMPC, DEMPCConfig
+from controllers.disturbance import OffsetFree
 from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
 from harness.evaluation.quality import control_quality, pedal_changes
 from harness.evaluation.tracking import track
@@ -94,7 +95,7 @@ def test_de_mpc_on_its_exact_model_holds_a_constant_speed_without_touching_the_b
     t = np.arange(600) * plant.dt
     steering = 60.0 * np.sin(2 * np.pi * 0.4 * t) * (t < 2.5)
     reference = np.array([plant.reset()] + [plant.step(np.array([s, 0.0])) for s in steering[:-1]])
-    config = DEMPCConfig(Np=20, Nc=10, offset_free=True)
+    config = DEMPCConfig(Np=20, Nc=10, disturbance=OffsetFree())
     controller = DEMPC(model, config)
     # Its bounds per step: the wheel's in degrees; the pedal's a share of each side's range,
     # the tighter of the throttle's and the brake's, on whichever side it moves.

@@ -119,7 +119,9 @@ def frame(runs: list[Run]) -> pd.DataFrame:
                     "Nc": Nc,
                     "horizon": f"{Np}/{Nc}" if horizon else None,
                     "mode": "path" if values.get("follows_path") else "states",
-                    "offset_free": bool(settings.get("offset_free", False)),
+                    # an estimator block (a job from before it: the offset_free flag)
+                    "offset_free": settings.get("disturbance") is not None
+                    or bool(settings.get("offset_free", False)),
                     "compute_delay": values.get("compute_delay", settings.get("compute_delay")),
                     **flatten(values),
                     **sections,
