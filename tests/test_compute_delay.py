@@ -210,3 +210,25 @@ def test_every_controller_config_takes_compute_delay_from_the_command_line(name:
     delayed = compose(f"controller={name}", "controller.compute_delay=one_step")
     assert check_controller_config(default.controller).compute_delay == "none"
     assert check_controller_config(delayed.controller).compute_delay == "one_step"
+
+
+def test_one_switch_puts_every_controller_of_the_run_on_the_same_clock() -> None:
+    """task.compute_delay=one_step: the run's controller and every extra one (the baseline
+    too) apply each input one period after its measurement; null leaves each its own."""
+    from hydra import compose, initialize_config_module
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    def controllers(*overrides: str) -> dict:
+        with initialize_config_module(config_module="conf", version_base=None):
+            cfg = compose(
+                "config",
+                overrides=["task.learner_name=edmd", "task.controller_name=main", *overrides],
+            )
+        return instantiate(cfg.task).controllers
+
+    delayed = controllers("task.compute_delay=one_step")
+    assert len(delayed) == 8 and {c.compute_delay for c in delayed.values()} == {"one_step"}
+    assert {c.compute_delay for c in controllers().values()} == {"none"}
+    with pytest.raises(InstantiationException, match=r"task\.compute_delay must be one of"):
+        controllers("task.compute_delay=two_steps")

@@ -33,6 +33,7 @@ Beside ``metrics.json`` it leaves the arrays behind its figures (``prediction_<e
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -47,8 +48,8 @@ import numpy as np
 
 from controllers.as_controlled import AsControlled
 from controllers.config import ControllerFactory, OwnModelFactory
-from harness.core.checks import integer, is_number
-from harness.core.contracts import INPUT_NAMES, LiftedModel, Model, dynamics_of
+from harness.core.checks import choice, integer, is_number
+from harness.core.contracts import COMPUTE_DELAYS, INPUT_NAMES, LiftedModel, Model, dynamics_of
 from harness.core.episode import SEDAN_INPUTS, Episode
 from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
@@ -105,6 +106,7 @@ class Pipeline:
         robustness_repeats: int = 100,
         logs_from_plant: bool = False,
         reuse_baseline_runs: bool = True,
+        compute_delay: str | None = None,
     ) -> None:
         self.data = data_config(data)
         self.learner, self.learner_name = learner, learner_name
@@ -118,6 +120,12 @@ class Pipeline:
                     f"task.extra_controllers.{name} must be a controller config (conf/controller/)"
                 )
             self.controllers[name] = make
+        if compute_delay is not None:  # one clock for every controller the run drives
+            choice("task.compute_delay", compute_delay, COMPUTE_DELAYS)
+            self.controllers = {
+                name: _with_delay(make, compute_delay, name)
+                for name, make in self.controllers.items()
+            }
         self.other_plants = dict(other_plants or {})
         self.model_path = model_path
         # All before any data: a model file of another learner, inputs the learner cannot take,
@@ -621,6 +629,16 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
+
+
+def _with_delay(make: ControllerFactory, compute_delay: str, name: str) -> ControllerFactory:
+    """The controller's settings with ``compute_delay`` (checked again, as any settings are)."""
+    if not (dataclasses.is_dataclass(make) and hasattr(make, "compute_delay")):
+        raise ValueError(
+            f"task.compute_delay: controller {name} ({type(make).__name__}) has no "
+            "compute_delay setting to apply it to"
+        )
+    return cast(ControllerFactory, dataclasses.replace(make, compute_delay=compute_delay))
 
 
 def check_windows(windows_s: Sequence[float], period_s: float, test: Sequence[Episode]) -> None:
