@@ -18,6 +18,7 @@ from harness.report.headline import (
     begin,
     headline,
     logs,
+    main_job,
     paper_model,
     paper_reported,
     replace_blocks,
@@ -196,3 +197,23 @@ def test_a_readme_without_a_generated_block_is_refused_in_one_line() -> None:
     with pytest.raises(ValueError, match="no generated block") as error:
         replace_blocks("# a README\n", RESULTS_DIR)
     assert "\n" not in str(error.value)
+
+
+def test_the_main_job_table_marks_a_state_not_better_than_persistence(tmp_path: Path) -> None:
+    source = RESULTS_DIR / BLOCKS["main job"][0]
+    study = tmp_path / source.name
+    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    before = main_job(study)
+    assert "†" not in before  # jobs from before the verdict: unmarked
+    job = study / "deep_edmd_s1"
+    metrics = json.loads((job / "metrics.json").read_text())
+    test = metrics["data"]["split"]["test"][0]
+    metrics["prediction"][test]["beats_persistence"] = {
+        "open_loop": {"vx": False, "vy": True, "yaw_rate": True}
+    }
+    (job / "metrics.json").write_text(json.dumps(metrics))
+    after = main_job(study)
+    row = next(line for line in after.splitlines() if line.startswith("| deep_edmd |"))
+    assert row.split(" | ")[2].split(" / ")[0].endswith("†")  # vx, open loop
+    assert row.split(" | ")[2].count("†") == 1
+    assert "†: not better than persistence (the state held) on at least one test drive." in after

@@ -140,7 +140,7 @@ def headline(study: Path) -> str:
         "jobs: finished of those the study's sweeps launched (the rest are named in its "
         "report); a lane-change cell is the seeds that passed (reached the exit, no cone hit) of "
         "those run, and their mean largest deviation from the centre line. "
-        f"From [results/{study.name}](docs/results/{study.name}.md)."
+        f"{_worse_note(lines)}From [results/{study.name}](docs/results/{study.name}.md)."
     )
 
 
@@ -168,7 +168,7 @@ def main_job(study: Path) -> str:
         f"\n\nMean over seeds {_seeds(jobs)} (RMSE in m/s, m/s, rad/s); the lane change as seeds "
         "passed (reached the exit, no cone hit) and mean largest deviation from the centre line; "
         "a step is the whole control step (preparation and feedback). "
-        f"From [results/{study.name}](docs/results/{study.name}.md)."
+        f"{_worse_note(lines)}From [results/{study.name}](docs/results/{study.name}.md)."
     )
 
 
@@ -198,6 +198,7 @@ def main_job_output(study: Path) -> str:
     return f"```\n{summary(run.metrics, title(run.learner, run.seed, run.plant))}\n```"
 
 
+WORSE = "†"  # a state's RMSE not below persistence's on some drive (``beats_persistence``)
 LOGS_WINDOWS = (("rmse_window_3s", "3 s windows"), ("rmse_window_1.5s", "1.5 s windows"))
 
 
@@ -343,6 +344,7 @@ def _prediction(jobs: pd.DataFrame, metric: str, held: bool = False) -> str:
     """``vx / vy / r`` of ``metric`` over every job's test drives (persistence's: ``held``);
     a rollout that diverged is counted, not averaged."""
     values: dict[str, list[float]] = {state: [] for state in STATES}
+    worse: set[str] = set()
     diverged = total = 0
     for _, job in jobs.iterrows():
         episodes = job.get("data.split.test")
@@ -351,6 +353,10 @@ def _prediction(jobs: pd.DataFrame, metric: str, held: bool = False) -> str:
             if _value(job, f"{prefix}.{metric}.vx") is None:
                 continue
             total += 1
+            for state in STATES:  # the verdict against the state held (jobs that have it)
+                verdict = job.get(f"{prefix}.beats_persistence.{window_name(metric)}.{state}")
+                if isinstance(verdict, bool | np.bool_) and not verdict:
+                    worse.add(state)
             if metric == "rmse" and job.get(f"{prefix}.diverged") is True:
                 diverged += 1
                 continue
@@ -360,8 +366,17 @@ def _prediction(jobs: pd.DataFrame, metric: str, held: bool = False) -> str:
             break
     if not values["vx"]:
         return f"diverged ({diverged} of {total})" if total else "not finished"
-    cells = " / ".join(_number(sum(v) / len(v)) for v in values.values())
+    cells = " / ".join(
+        _number(sum(v) / len(v)) + (WORSE if state in worse else "") for state, v in values.items()
+    )
     return cells + (f" ({diverged} of {total} diverged)" if diverged else "")
+
+
+def _worse_note(lines: list[str]) -> str:
+    """The footnote of the mark, where a table has one."""
+    if not any(WORSE in line for line in lines):
+        return ""
+    return f"{WORSE}: not better than persistence (the state held) on at least one test drive. "
 
 
 def _jobs(jobs: pd.DataFrame) -> str:
