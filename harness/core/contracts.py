@@ -26,12 +26,13 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, runtime_chec
 
 import numpy as np
 
+from harness.core.names import INPUT_NAMES as INPUT_NAMES  # re-exported: the contracts name them
+from harness.core.names import STATE_NAMES as STATE_NAMES
+
 if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import nothing heavy
     from harness.core.episode import Episode, MinMaxNormalizer
     from harness.core.reference_path import ReferencePath
 
-STATE_NAMES: tuple[str, ...] = ("vx", "vy", "yaw_rate")
-INPUT_NAMES: tuple[str, ...] = ("steer_wheel_deg", "pedal")
 # ``controller.compute_delay``: control periods between a measurement and the plant receiving
 # the input computed from it. The loop holds each input that long
 # (:func:`harness.plant.rollout.closed_loop`); a controller that knows it predicts its model forward

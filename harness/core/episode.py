@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from harness.core.contracts import INPUT_NAMES, STATE_NAMES
 from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
+from harness.core.names import INPUT_NAMES, STATE_NAMES
 
 POSE_NAMES = ("X", "Y", "yaw")
 
