@@ -104,6 +104,20 @@ _Maps = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass(frozen=True)
+class _LateralSamples:
+    """The samples the lateral and yaw equations are fitted on: states, road-wheel angle
+    (rad), lateral and yaw acceleration."""
+
+    x: np.ndarray
+    delta: np.ndarray
+    lateral_accel: np.ndarray
+    yaw_accel: np.ndarray
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return self.x, self.delta, self.lateral_accel, self.yaw_accel
+
+
+@dataclass(frozen=True)
 class InputLayout:
     """Where each input goes: ``order`` lists the data's columns as the model takes them (the
     steering first, then the others as the data has them), ``steer_to_rad`` converts the
@@ -273,10 +287,10 @@ class SingleTrack(Learner):
                 f"identify {needed // 10} parameters"
             )
         delta = u[moving, 0] * layout.steer_to_rad
-        lateral = (x[moving], delta, lateral_accel[moving], rate[moving, 2])
+        lateral = _LateralSamples(x[moving], delta, lateral_accel[moving], rate[moving, 2])
         self.identified_geometry_: tuple[float, float] | None = None
         if self.a is not None and self.b is not None:
-            form = self._fit_geometry(*lateral, self.a, self.b)
+            form = self._fit_geometry(lateral, self.a, self.b)
         else:
             w = np.maximum(vx[moving], self.min_speed)
             regressors = np.column_stack([delta, vy[moving] / w, r[moving] / w])
@@ -287,8 +301,8 @@ class SingleTrack(Learner):
             a, b = _geometry_of(form)
             low, high = GEOMETRY_BOUNDS_M
             if not (low <= a <= high and low <= b <= high):
-                a, b = self._bounded_geometry(*lateral, a, b)
-                form = self._fit_geometry(*lateral, a, b)
+                a, b = self._bounded_geometry(lateral, a, b)
+                form = self._fit_geometry(lateral, a, b)
                 self.identified_geometry_ = (a, b)
         rolling_regime = vx > 0.5  # at standstill the brakes hold the car: no dynamics to fit
         longitudinal = self._longitudinal_regressors(x, u)[rolling_regime]
@@ -311,26 +325,14 @@ class SingleTrack(Learner):
         return self
 
     def _fit_geometry(
-        self,
-        x: np.ndarray,
-        delta: np.ndarray,
-        lateral_accel: np.ndarray,
-        yaw_accel: np.ndarray,
-        a: float,
-        b: float,
+        self, samples: _LateralSamples, a: float, b: float
     ) -> tuple[float, float, float, float, float, float]:
         """θ_1 .. θ_6 of the physical fit with a and b given."""
-        fitted = self._fit_lateral(x, delta, lateral_accel, yaw_accel, a, b)
+        fitted = self._fit_lateral(*samples.arrays(), a, b)
         return form_of(dict(zip(LATERAL + YAW, fitted, strict=True)), a, b)
 
     def _bounded_geometry(
-        self,
-        x: np.ndarray,
-        delta: np.ndarray,
-        lateral_accel: np.ndarray,
-        yaw_accel: np.ndarray,
-        a_free: float,
-        b_free: float,
+        self, samples: _LateralSamples, a_free: float, b_free: float
     ) -> tuple[float, float]:
         """a and b within :data:`GEOMETRY_BOUNDS_M` that fit the lateral and yaw equations
         best (a coarse grid, then a bounded local search), with a warning that the free fit's
@@ -338,7 +340,7 @@ class SingleTrack(Learner):
         low, high = GEOMETRY_BOUNDS_M
 
         def residual(ab: np.ndarray) -> float:
-            return self._lateral_residual(x, delta, lateral_accel, yaw_accel, *map(float, ab))
+            return self._lateral_residual(samples, float(ab[0]), float(ab[1]))
 
         grid = np.linspace(low, high, 7)
         start = min(((a, b) for a in grid for b in grid), key=lambda ab: residual(np.array(ab)))
@@ -357,17 +359,10 @@ class SingleTrack(Learner):
         )
         return a, b
 
-    def _lateral_residual(
-        self,
-        x: np.ndarray,
-        delta: np.ndarray,
-        lateral_accel: np.ndarray,
-        yaw_accel: np.ndarray,
-        a: float,
-        b: float,
-    ) -> float:
+    def _lateral_residual(self, samples: _LateralSamples, a: float, b: float) -> float:
         """Normalized squared residual of both equations with a and b given."""
-        form = self._fit_geometry(x, delta, lateral_accel, yaw_accel, a, b)
+        form = self._fit_geometry(samples, a, b)
+        x, delta, lateral_accel, yaw_accel = samples.arrays()
         vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
         w = np.maximum(vx, self.min_speed)
         regressors = np.column_stack([delta, vy / w, r / w])

@@ -330,17 +330,8 @@ def train(
     open-loop rollouts of the validation drives: a dict with :data:`ROLLOUT_SCORE` (lower is
     better; inf where a rollout diverged) and any per-state terms to keep in the history.
     """
-    for p in {horizon, *(p for p, _ in config.curriculum or ())}:
-        if len(train_data.window_starts(p)) == 0:
-            raise ValueError(
-                f"a training window of {p} steps (learner.horizon or training.curriculum) is "
-                f"longer than every training episode (no window fits)"
-            )
-    if config.selection == "rollout" and validation_data is not None and rollout_score is None:
-        raise ValueError(f"{name}: training.selection is rollout but no rollout score was given")
-    val_starts = (
-        validation_data.window_starts(horizon) if validation_data is not None else np.zeros(0)
-    )
+    _check_windows(name, train_data, validation_data, horizon, config, rollout_score)
+    validation = _Validation(objective, validation_data, horizon, config, rollout_score)
     params = objective.params
     flat = torch.nn.Parameter(params.data)  # shares storage with params.data and its views
     flat.grad = params.grad
@@ -353,33 +344,7 @@ def train(
     }
     state = _State.fresh(params.data.clone() if config.average_decay is not None else None)
     if checkpoint_path is not None and checkpoint_path.exists():
-        try:
-            state = _State.load(checkpoint_path, fingerprint, params, optimizer)
-        except DamagedCheckpointError as damaged:
-            aside = checkpoint_path.with_name(checkpoint_path.name + ".damaged")
-            checkpoint_path.replace(aside)
-            log.warning(
-                "%s: %s is damaged (%s); training starts afresh (the file is kept as %s)",
-                name,
-                checkpoint_path,
-                damaged,
-                aside.name,
-            )
-
-    def validation_loss() -> dict[str, float]:
-        if not len(val_starts):
-            return {}
-        totals: dict[str, float] = {}
-        for i in range(0, len(val_starts), VALIDATION_CHUNK):
-            chunk = val_starts[i : i + VALIDATION_CHUNK]
-            x, v = validation_data.gather(chunk, horizon)
-            for key, value in objective.validate(x, v).items():
-                totals[key] = totals.get(key, 0.0) + value * len(chunk)
-        out = {k: v / len(val_starts) for k, v in totals.items()}
-        if config.selection == "rollout" and rollout_score is not None:
-            out.update(rollout_score())
-        return out
-
+        state = _resume(name, checkpoint_path, fingerprint, params, optimizer, state)
     resumed_s, clock = state.trained_s, time.perf_counter()
 
     def save_checkpoint() -> None:
@@ -387,71 +352,24 @@ def train(
             state.trained_s = resumed_s + time.perf_counter() - clock
             state.save(checkpoint_path, fingerprint, params, optimizer)
 
-    def budget_left() -> bool:
-        if config.max_steps is not None and state.step >= config.max_steps:
-            return False
-        return config.max_epochs is None or state.epoch < config.max_epochs
-
-    with (
-        _torch_threads(config.num_threads),
-        tqdm(
-            total=None
-            if config.max_steps is None
-            else config.work_until(config.max_steps, horizon),
-            initial=config.work_until(state.step, horizon),
-            desc=name,
-            bar_format=None if config.max_steps is None else _BAR,
-            disable=not config.progress,
-            mininterval=1.0,
-            smoothing=0.0,  # the rate over this whole run: work-weighted, it holds
-        ) as bar,
-    ):
-        of = "" if config.max_steps is None else f"/{config.max_steps}"
-        while budget_left() and not state.stopped:
+    with _torch_threads(config.num_threads), _progress(name, config, state, horizon) as bar:
+        step = _Step(name, objective, flat, optimizer, config, state)
+        while _budget_left(config, state) and not state.stopped:
             # An epoch's windows have the length of its first step (resumed: step - batches).
             p = config.horizon_at(state.step - state.batch_in_epoch, horizon)
-            rng = np.random.default_rng([config.seed, state.epoch])
-            offsets = rng.integers(0, p + 1, len(train_data.episode_lengths))
-            starts = train_data.window_starts(p, offsets)
-            order = rng.permutation(len(starts))
-            batch = min(config.batch_size, len(starts))
-            n_batches = len(starts) // batch  # the last partial batch is dropped
-            for b in range(state.batch_in_epoch, n_batches):
-                x, v = train_data.gather(starts[order[b * batch : (b + 1) * batch]], p)
-                if config.initial_state_noise:
-                    noise = np.random.default_rng([config.seed, state.step, 1]).standard_normal(
-                        (x.shape[0], x.shape[2])
-                    )
-                    x[:, 0] += torch.from_numpy(
-                        (config.initial_state_noise * noise).astype(np.float32)
-                    )
-                params.grad.zero_()
-                loss = objective.train_step(x, v, state.step)
-                if not math.isfinite(loss):
-                    raise RuntimeError(
-                        f"{name} training diverged at step {state.step} (loss = {loss}); "
-                        f"lower learner.training.lr or check the data"
-                    )
-                if config.grad_clip_norm is not None:
-                    torch.nn.utils.clip_grad_norm_([flat], config.grad_clip_norm)
-                optimizer.param_groups[0]["lr"] = config.lr_at(state.step)
-                optimizer.step()
-                if state.average is not None:
-                    assert config.average_decay is not None  # the average exists only then
-                    state.average.lerp_(params.data, 1.0 - config.average_decay)
-                state.step += 1
+            batches = _epoch_batches(train_data, config, state.epoch, p)
+            for b in range(state.batch_in_epoch, len(batches)):
+                step(*train_data.gather(batches[b], p))
                 state.batch_in_epoch = b + 1
-                state.train_sum += loss
-                state.train_count += 1
-                bar.set_description_str(f"{name} batch {state.step}{of}", refresh=False)
+                bar.set_description_str(step.description(), refresh=False)
                 bar.update(p + BATCH_FIXED_STEPS)
                 if state.step % config.eval_every_steps == 0:
                     with _averaged(params, state.average):
-                        state.evaluate(validation_loss(), params, config)
+                        state.evaluate(validation(), params, config)
                     bar.set_postfix(state.postfix(), refresh=False)
                 if state.step % config.checkpoint_every_steps == 0:
                     save_checkpoint()
-                if state.stopped or not budget_left():
+                if state.stopped or not _budget_left(config, state):
                     break
                 if config.horizon_at(state.step, horizon) != p:  # the next phase: a new epoch
                     state.epoch += 1
@@ -460,27 +378,187 @@ def train(
             else:
                 state.epoch += 1
                 state.batch_in_epoch = 0
-        if state.train_count or not state.history.step:  # evaluate the last, off-grid steps
-            final = _State.from_state(state)
-            with _averaged(params, state.average):
-                final.evaluate(validation_loss(), params, config)
-            history = final.history
-            best = final.best_params
-        else:
-            history, best = state.history, state.best_params
-        if not state.stopped:
-            history.stopped = (
-                "max_steps"
-                if config.max_steps is not None and state.step >= config.max_steps
-                else "max_epochs"
-            )
+        history, best = _finish(state, params, config, validation)
         save_checkpoint()
     history.resumed_s = resumed_s
-    if best is not None and len(val_starts):
+    if best is not None and len(validation.windows):
         params.data.copy_(best)
     elif state.average is not None:  # nothing to choose by: the average is the model
         params.data.copy_(state.average)
     return history
+
+
+def _check_windows(
+    name: str,
+    train_data: WindowData,
+    validation_data: WindowData | None,
+    horizon: int,
+    config: TrainingConfig,
+    rollout_score: Callable[[], dict[str, float]] | None,
+) -> None:
+    """Every window length fits a training episode; rollout selection has its score."""
+    for p in {horizon, *(p for p, _ in config.curriculum or ())}:
+        if len(train_data.window_starts(p)) == 0:
+            raise ValueError(
+                f"a training window of {p} steps (learner.horizon or training.curriculum) is "
+                f"longer than every training episode (no window fits)"
+            )
+    if config.selection == "rollout" and validation_data is not None and rollout_score is None:
+        raise ValueError(f"{name}: training.selection is rollout but no rollout score was given")
+
+
+def _resume(
+    name: str,
+    checkpoint_path: Path,
+    fingerprint: Mapping[str, Any],
+    params: FlatParameters,
+    optimizer: torch.optim.Optimizer,
+    fresh: _State,
+) -> _State:
+    """The checkpoint's state; a damaged one is set aside, named, and training starts afresh."""
+    try:
+        return _State.load(checkpoint_path, fingerprint, params, optimizer)
+    except DamagedCheckpointError as damaged:
+        aside = checkpoint_path.with_name(checkpoint_path.name + ".damaged")
+        checkpoint_path.replace(aside)
+        log.warning(
+            "%s: %s is damaged (%s); training starts afresh (the file is kept as %s)",
+            name,
+            checkpoint_path,
+            damaged,
+            aside.name,
+        )
+        return fresh
+
+
+class _Validation:
+    """The validation measure of the current parameters: the windows' loss, in chunks, and the
+    rollout score where the selection is by rollouts."""
+
+    def __init__(
+        self,
+        objective: Objective,
+        data: WindowData | None,
+        horizon: int,
+        config: TrainingConfig,
+        rollout_score: Callable[[], dict[str, float]] | None,
+    ) -> None:
+        self.objective, self.data, self.horizon = objective, data, horizon
+        self.windows = data.window_starts(horizon) if data is not None else np.zeros(0)
+        self.rollout_score = rollout_score if config.selection == "rollout" else None
+
+    def __call__(self) -> dict[str, float]:
+        if not len(self.windows) or self.data is None:
+            return {}
+        totals: dict[str, float] = {}
+        for i in range(0, len(self.windows), VALIDATION_CHUNK):
+            chunk = self.windows[i : i + VALIDATION_CHUNK]
+            x, v = self.data.gather(chunk, self.horizon)
+            for key, value in self.objective.validate(x, v).items():
+                totals[key] = totals.get(key, 0.0) + value * len(chunk)
+        out = {k: v / len(self.windows) for k, v in totals.items()}
+        if self.rollout_score is not None:
+            out.update(self.rollout_score())
+        return out
+
+
+class _Step:
+    """One batch: the initial state's noise, the loss and its gradient, the clip, Adam's step
+    at the schedule's rate, the average; the loss's running sum in the state."""
+
+    def __init__(
+        self,
+        name: str,
+        objective: Objective,
+        flat: torch.nn.Parameter,
+        optimizer: torch.optim.Optimizer,
+        config: TrainingConfig,
+        state: _State,
+    ) -> None:
+        self.name, self.objective, self.flat, self.optimizer = name, objective, flat, optimizer
+        self.config, self.state = config, state
+        self.of = "" if config.max_steps is None else f"/{config.max_steps}"
+
+    def __call__(self, x: torch.Tensor, v: torch.Tensor) -> None:
+        config, state, params = self.config, self.state, self.objective.params
+        if config.initial_state_noise:
+            noise = np.random.default_rng([config.seed, state.step, 1]).standard_normal(
+                (x.shape[0], x.shape[2])
+            )
+            x[:, 0] += torch.from_numpy((config.initial_state_noise * noise).astype(np.float32))
+        params.grad.zero_()
+        loss = self.objective.train_step(x, v, state.step)
+        if not math.isfinite(loss):
+            raise RuntimeError(
+                f"{self.name} training diverged at step {state.step} (loss = {loss}); "
+                f"lower learner.training.lr or check the data"
+            )
+        if config.grad_clip_norm is not None:
+            torch.nn.utils.clip_grad_norm_([self.flat], config.grad_clip_norm)
+        self.optimizer.param_groups[0]["lr"] = config.lr_at(state.step)
+        self.optimizer.step()
+        if state.average is not None:
+            assert config.average_decay is not None  # the average exists only then
+            state.average.lerp_(params.data, 1.0 - config.average_decay)
+        state.step += 1
+        state.train_sum += loss
+        state.train_count += 1
+
+    def description(self) -> str:
+        return f"{self.name} batch {self.state.step}{self.of}"
+
+
+def _epoch_batches(
+    data: WindowData, config: TrainingConfig, epoch: int, p: int
+) -> list[np.ndarray]:
+    """The window starts of each of an epoch's batches (windows of p steps, drawn from
+    ``[seed, epoch]``; the last partial batch dropped)."""
+    rng = np.random.default_rng([config.seed, epoch])
+    offsets = rng.integers(0, p + 1, len(data.episode_lengths))
+    starts = data.window_starts(p, offsets)
+    order = rng.permutation(len(starts))
+    batch = min(config.batch_size, len(starts))
+    return [starts[order[b * batch : (b + 1) * batch]] for b in range(len(starts) // batch)]
+
+
+def _budget_left(config: TrainingConfig, state: _State) -> bool:
+    if config.max_steps is not None and state.step >= config.max_steps:
+        return False
+    return config.max_epochs is None or state.epoch < config.max_epochs
+
+
+def _progress(name: str, config: TrainingConfig, state: _State, horizon: int) -> tqdm:
+    """The bar: work done in window steps (an ETA that holds across the curriculum)."""
+    return tqdm(
+        total=None if config.max_steps is None else config.work_until(config.max_steps, horizon),
+        initial=config.work_until(state.step, horizon),
+        desc=name,
+        bar_format=None if config.max_steps is None else _BAR,
+        disable=not config.progress,
+        mininterval=1.0,
+        smoothing=0.0,  # the rate over this whole run: work-weighted, it holds
+    )
+
+
+def _finish(
+    state: _State, params: FlatParameters, config: TrainingConfig, validation: _Validation
+) -> tuple[History, torch.Tensor | None]:
+    """The history and the best parameters, the last off-grid steps evaluated too; why the
+    training stopped."""
+    if state.train_count or not state.history.step:  # evaluate the last, off-grid steps
+        final = _State.from_state(state)
+        with _averaged(params, state.average):
+            final.evaluate(validation(), params, config)
+        history, best = final.history, final.best_params
+    else:
+        history, best = state.history, state.best_params
+    if not state.stopped:
+        history.stopped = (
+            "max_steps"
+            if config.max_steps is not None and state.step >= config.max_steps
+            else "max_epochs"
+        )
+    return history, best
 
 
 @contextlib.contextmanager

@@ -19,6 +19,7 @@ from harness.data.ddk import authors_split
 from harness.data.logs import LogsConfig, import_logs, read_log
 from harness.data.store import DatasetError, load
 from harness.evaluation.prediction import evaluate
+from harness.tasks.pipeline import Pipeline
 from learners.dictionaries import ThinPlateRBF
 from learners.edmd import EDMD
 from learners.input_edmd import InputEDMD
@@ -368,13 +369,9 @@ def harness_on(
     )
 
 
-def test_a_learner_needing_an_input_the_logs_lack_is_refused_before_they_are_read(
-    tmp_path: Path,
-) -> None:
-    """The pedal split on logs with throttle and brake already apart: one line, no data read."""
+def ddk_pipeline(tmp_path: Path, learner: str, *overrides: str) -> Pipeline:
+    """The pipeline built on the DDK preset (its files absent: nothing may read them)."""
     from hydra.utils import instantiate
-
-    from harness.tasks.pipeline import Pipeline
 
     with initialize_config_module(config_module="conf", version_base=None):
         cfg = compose(
@@ -382,11 +379,19 @@ def test_a_learner_needing_an_input_the_logs_lack_is_refused_before_they_are_rea
             overrides=[
                 "data=ddk_carsim",
                 f"data.path={tmp_path / 'absent'}",
-                "learner=deep_edmd_split",
+                f"learner={learner}",
+                *overrides,
             ],
         )
+    return Pipeline(cfg.data, instantiate(cfg.learner, _convert_="object"), learner)
+
+
+def test_a_learner_needing_an_input_the_logs_lack_is_refused_before_they_are_read(
+    tmp_path: Path,
+) -> None:
+    """The pedal split on logs with throttle and brake already apart: one line, no data read."""
     with pytest.raises(ValueError) as info:
-        Pipeline(cfg.data, instantiate(cfg.learner, _convert_="object"), "deep_edmd_split")
+        ddk_pipeline(tmp_path, "deep_edmd_split")
     assert str(info.value) == (
         "the data config has no 'pedal' input (front_wheel_angle_rad, throttle, brake_mpa): the "
         "pedal split needs a signed throttle/brake input (learner.pedal names it)"
@@ -444,22 +449,9 @@ def test_the_physics_baseline_on_logs_without_roles_is_refused_before_they_are_r
 ) -> None:
     """learner=single_track needs to know which input steers and which brakes: one line naming
     the key to set, no data read; the preset's roles pass the same check."""
-    from hydra.utils import instantiate
-
-    from harness.tasks.pipeline import Pipeline
 
     def pipeline(*overrides: str) -> Pipeline:
-        with initialize_config_module(config_module="conf", version_base=None):
-            cfg = compose(
-                "config",
-                overrides=[
-                    "data=ddk_carsim",
-                    f"data.path={tmp_path / 'absent'}",
-                    "learner=single_track",
-                    *overrides,
-                ],
-            )
-        return Pipeline(cfg.data, instantiate(cfg.learner, _convert_="object"), "single_track")
+        return ddk_pipeline(tmp_path, "single_track", *overrides)
 
     assert pipeline().data.channels[2].role == "brake"  # the preset declares every role
     with pytest.raises(ValueError) as info:

@@ -16,6 +16,7 @@ import pytest
 
 from controllers import DEMPCConfig
 from controllers.condensed_qp import SMALL_LIFT, TimeVaryingQP
+from controllers.disturbance import OffsetFree
 from controllers.linearization import BilinearLinearization
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
@@ -41,7 +42,7 @@ def _inputs(model, states, path=None, **settings):
     [
         {},
         {"Np": 60, "Nc": 50},
-        {"offset_free": True},
+        {"disturbance": OffsetFree()},
         {"sqp_iterations": 2},
         {"compute_delay": "one_step"},
     ],

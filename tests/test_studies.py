@@ -92,6 +92,13 @@ def test_an_incomplete_study_is_not_published(tmp_path: Path, damage: str) -> No
     assert not (tmp_path / "docs").exists()
 
 
+def copied_study(name: str, tmp_path: Path) -> Path:
+    """A committed study copied to edit (its generated report left behind)."""
+    study = tmp_path / name
+    shutil.copytree(RESULTS_DIR / name, study, ignore=shutil.ignore_patterns("report"))
+    return study
+
+
 @pytest.mark.parametrize("name", BLOCKS)
 def test_every_generated_table_of_the_readme_and_docs_is_its_studys_data(name: str) -> None:
     study, _, document = BLOCKS[name]
@@ -106,9 +113,7 @@ def test_every_generated_table_of_the_readme_and_docs_is_its_studys_data(name: s
 def test_the_logs_table_counts_a_diverged_seed_instead_of_averaging_it(tmp_path: Path) -> None:
     """One seed's whole run diverged: its learner's whole-run cells say so and average the
     others; its windows (finite) still count every seed."""
-    source = RESULTS_DIR / BLOCKS["logs"][0]
-    study = tmp_path / source.name
-    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    study = copied_study(BLOCKS["logs"][0], tmp_path)
     before = logs(study)
     job = study / "input_edmd_s0"
     metrics = json.loads((job / "metrics.json").read_text())
@@ -124,9 +129,7 @@ def test_the_logs_table_counts_a_diverged_seed_instead_of_averaging_it(tmp_path:
 def test_the_logs_table_counts_the_runs_that_do_not_beat_persistence(tmp_path: Path) -> None:
     """A verdict in one job's metrics marks its learner's cell of that window and state, and
     nothing else: jobs without the verdict (before it existed) read as they did."""
-    source = RESULTS_DIR / BLOCKS["logs"][0]
-    study = tmp_path / source.name
-    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    study = copied_study(BLOCKS["logs"][0], tmp_path)
     before = logs(study)
     job = study / "edmd_s0"
     metrics = json.loads((job / "metrics.json").read_text())
@@ -146,9 +149,7 @@ def test_the_logs_table_counts_the_runs_that_do_not_beat_persistence(tmp_path: P
 
 def test_the_headline_counts_a_lane_change_that_no_longer_passed(tmp_path: Path) -> None:
     """The check above can fail: one seed's 80 km/h pass turned into a fail moves its cell."""
-    source = RESULTS_DIR / BLOCKS["headline"][0]
-    study = tmp_path / source.name
-    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    study = copied_study(BLOCKS["headline"][0], tmp_path)
     before = headline(study)
     job = next(p.parent for p in sorted(study.rglob("metrics.json")) if "input_edmd" in str(p))
     metrics = json.loads((job / "metrics.json").read_text())
@@ -200,9 +201,7 @@ def test_a_readme_without_a_generated_block_is_refused_in_one_line() -> None:
 
 
 def test_the_main_job_table_marks_a_state_not_better_than_persistence(tmp_path: Path) -> None:
-    source = RESULTS_DIR / BLOCKS["main job"][0]
-    study = tmp_path / source.name
-    shutil.copytree(source, study, ignore=shutil.ignore_patterns("report"))
+    study = copied_study(BLOCKS["main job"][0], tmp_path)
     for path in study.glob("*/metrics.json"):  # every verdict gone, as in jobs before it
         metrics = json.loads(path.read_text())
         for result in metrics["prediction"].values():

@@ -137,32 +137,14 @@ class Pipeline:
                 learner.check_size(self.data.max_steps)  # logs: once read, before the fit
             else:
                 learner.check_inputs(self.data.channels)  # the logs' column map
-        # A window of one step is its measured first state only: no prediction to score.
-        integer("task.prediction_window_steps", prediction_window_steps, 2)
-        windows = (
-            [prediction_window_s]
-            if isinstance(prediction_window_s, int | float)
-            else list(prediction_window_s)
+        self.window_steps, self.windows_s, self.envelope_spans = _prediction_settings(
+            prediction_window_steps, prediction_window_s, prediction_envelope_spans
         )
-        for window in windows:
-            if not (is_number(window) and math.isfinite(window) and window > 0):
-                raise ValueError(
-                    f"task.prediction_window_s must be a number > 0 or a list of them (got "
-                    f"{prediction_window_s})"
-                )
-        if not (is_number(prediction_envelope_spans) and 0 < prediction_envelope_spans < math.inf):
-            raise ValueError(
-                "task.prediction_envelope_spans must be a number > 0: how many training spans "
-                f"beyond the data's range a prediction counts as diverged (got "
-                f"{prediction_envelope_spans})"
-            )
-        self.envelope_spans = float(prediction_envelope_spans)
         # null leaves a reference out (an experiment replacing the default's lane change)
         references = {k: v for k, v in (references or {}).items() if v is not None}
         for name, reference in references.items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
-        self.window_steps, self.windows_s = int(prediction_window_steps), windows
         self.references = references
         integer("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
@@ -629,6 +611,26 @@ class Pipeline:
         if tracking is not None:
             result["tracking"] = tracking
         return result
+
+
+def _prediction_settings(
+    window_steps: int, windows_s: float | Sequence[float], envelope_spans: float
+) -> tuple[int, list[float], float]:
+    """The prediction task's windows (steps; seconds, as a list) and envelope, checked."""
+    # A window of one step is its measured first state only: no prediction to score.
+    integer("task.prediction_window_steps", window_steps, 2)
+    windows = [windows_s] if isinstance(windows_s, int | float) else list(windows_s)
+    for window in windows:
+        if not (is_number(window) and math.isfinite(window) and window > 0):
+            raise ValueError(
+                f"task.prediction_window_s must be a number > 0 or a list of them (got {windows_s})"
+            )
+    if not (is_number(envelope_spans) and 0 < envelope_spans < math.inf):
+        raise ValueError(
+            "task.prediction_envelope_spans must be a number > 0: how many training spans "
+            f"beyond the data's range a prediction counts as diverged (got {envelope_spans})"
+        )
+    return int(window_steps), windows, float(envelope_spans)
 
 
 def _with_delay(make: ControllerFactory, compute_delay: str, name: str) -> ControllerFactory:
