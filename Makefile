@@ -23,9 +23,12 @@ run: setup  ## run the main job (results under outputs/<date>/<time>/)
 	$(BIN)/python -m harness $(ARGS)
 
 # Passed on a 2-core AMD EPYC without AVX-512 (2026-11-25) on every path of FP_PATHS below too.
-test: setup  ## lint and type-check, then the test suite (slow tests excluded)
+lint: setup  ## ruff (lint and format check) and mypy
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+
+test: lint  ## lint and type-check, then the test suite (slow tests excluded)
 	$(BIN)/python -m pytest
 
 # The floating-point paths `make test-fp` runs the suite on, one after the other: one BLAS thread,

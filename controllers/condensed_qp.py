@@ -779,8 +779,14 @@ class TimeVaryingQP(CondensedQP):
             self.n * Np, M
         )
         self._theta_q = np.ascontiguousarray(q_theta.T)
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverging model's Θ: see below
+            curvature = self.theta.T @ q_theta
+        if not np.all(np.isfinite(curvature)):
+            raise np.linalg.LinAlgError(
+                "time-varying QP Hessian not finite: the model's prediction overflows"
+            )
         P = np.zeros((M + 1, M + 1))
-        P[:M, :M] = 2 * (self.theta.T @ q_theta + self._R_blocks)
+        P[:M, :M] = 2 * (curvature + self._R_blocks)
         P[M, M] = 2 * self.rho
         self.P = np.asfortranarray((P + P.T) / 2)
         factor, info = dpotrf(self.P[:M, :M], lower=1)

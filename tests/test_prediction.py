@@ -362,3 +362,11 @@ def test_a_five_input_car_is_drawn_one_axis_per_unit(tmp_path: Path) -> None:
     assert len(axes) == 3 + 3  # the states, then steering, drive torques, brake pressures
     assert axes[4].get_ylabel() == "torque_rl, torque_rr [N*m]"
     assert axes[5].get_ylabel() == "brake_front, brake_rear [bar]"
+
+
+def test_a_rollout_out_at_its_first_step_has_no_rmse_before_it() -> None:
+    episode = linear_episode("e", 50, 5)
+    away = RunsAway(3.0, row=1).fit([episode], [], MinMaxNormalizer.fit([episode]))
+    metrics = evaluate({"m": away}, [episode])["m"]["e"]
+    assert metrics["diverged_at_s"] == pytest.approx(episode.time_s[1])
+    assert metrics["rmse_until_diverged"] == {"vx": None, "vy": None, "yaw_rate": None}

@@ -159,8 +159,11 @@ def evaluate(
             if exit_row is not None:
                 _warn_diverged(name, episode, pred, exit_row)
                 results[name][episode.name]["diverged_at_s"] = float(episode.time_s[exit_row])
-                results[name][episode.name]["rmse_until_diverged"] = rmse(
-                    pred, episode.states, np.arange(1, exit_row)
+                # Null where it left at its first predicted step: nothing came before.
+                results[name][episode.name]["rmse_until_diverged"] = (
+                    rmse(pred, episode.states, np.arange(1, exit_row))
+                    if exit_row > 1
+                    else dict.fromkeys(STATE_NAMES)
                 )
         if recorder is not None:
             recorder.rollout(
