@@ -55,6 +55,14 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.linalg.blas import dtrmv
 from scipy.linalg.lapack import dpotrf, dpotrs, dtrtri, dtrtrs
 
+from controllers.condensing import (
+    block_cumulative,
+    block_diagonal,
+    free_response_maps,
+    time_invariant_theta,
+    time_varying_theta,
+)
+
 PATHS = ("unconstrained", "active_set", "daqp", "piqp", "failed")
 # The active-set solver tried before PIQP: DAQP (default: the bounded worst case, measured in
 # docs/control.md) or ours (Lawson-Hanson on the dual, hot-started).
@@ -67,25 +75,6 @@ SMALL_LIFT = 16
 # The status of a solve whose prediction (free response) is not finite: a model that diverges
 # from this state. Nothing is optimised; the controller falls back.
 PREDICTION_NOT_FINITE = "prediction_not_finite"
-
-
-def _block_diagonal(block: np.ndarray, count: int) -> np.ndarray:
-    """kron(I_count, block) without kron's (count·m)² products of zeros (a fifth of a band
-    QP's construction at 60/50)."""
-    m = block.shape[0]
-    blocks = np.zeros((count, m, count, m))
-    index = np.arange(count)
-    blocks[index, :, index, :] = block
-    return blocks.reshape(count * m, count * m)
-
-
-def _block_cumulative(count: int, m: int) -> np.ndarray:
-    """kron(tril(ones(count)), I_m): v_{t-1} + this · ΔV are the inputs over the horizon."""
-    cumulative = np.zeros((count, m, count, m))
-    lower = np.tril(np.ones((count, count)))
-    for channel in range(m):
-        cumulative[:, channel, :, channel] = lower
-    return cumulative.reshape(count * m, count * m)
 
 
 @dataclass(frozen=True)
@@ -212,7 +201,7 @@ class CondensedQP:
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
         q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, n, M)).reshape(n * Np, M)
         self._theta_q = np.ascontiguousarray(q_theta.T)  # ΘᵀQ, (M, n Np)
-        hessian = self.theta.T @ q_theta + _block_diagonal(self._R, Nc)
+        hessian = self.theta.T @ q_theta + block_diagonal(self._R, Nc)
         self.P = np.zeros((M + 1, M + 1))
         self.P[:M, :M] = 2 * hessian
         self.P[M, M] = 2 * self.rho
@@ -225,7 +214,7 @@ class CondensedQP:
         """Rows G x <= b (b moves with v_{t-1}): they depend on the limits, never on the model."""
         m, Nc, M = self.m, self.Nc, self.m * self.Nc
         inv_rate = np.tile(1.0 / self.dv_max, Nc)
-        cumulative = _block_cumulative(Nc, m)
+        cumulative = block_cumulative(Nc, m)
         G = np.zeros((4 * M + 1, M + 1))
         G[:M, :M], G[:M, M] = np.diag(inv_rate), -1.0
         G[M : 2 * M, :M], G[M : 2 * M, M] = -np.diag(inv_rate), -1.0
@@ -672,7 +661,7 @@ class TimeVaryingQP(CondensedQP):
         self.active_set_max_iter = active_set_max_iter
         self.C = np.ascontiguousarray(C, dtype=float)
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
-        self._R_blocks = _block_diagonal(self._R, Nc)
+        self._R_blocks = block_diagonal(self._R, Nc)
         M = self.m * Nc
         # Until the first set_model: a model without input effect (P = 2 diag(R, ρ)).
         self.theta = np.zeros((self.n * Np, M))
@@ -879,68 +868,6 @@ class TimeVaryingQP(CondensedQP):
                 K[edges[i] : edges[i + 1], edges[j] : edges[j + 1]] = block
         self._K = K
         self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
-
-
-def time_varying_theta(A: np.ndarray, B: np.ndarray, C: np.ndarray, Nc: int) -> np.ndarray:
-    """Θ (n Np, m Nc): y_i's response to the increment Δv_j of a time-varying model.
-
-    Δv_j holds from step j on, so the state's response S_j obeys S_j(k+1) = A_k S_j(k) + B_k
-    for k >= j (S_j(j) = 0). All Nc responses advance together, one product per step over the
-    increments already applied (a loop over Np of BLAS-3 products: each step needs the last).
-    """
-    Np, N, m = B.shape
-    M = m * Nc
-    response = np.zeros((N, M))
-    history = np.empty((Np, N, M))
-    blocks = response.reshape(N, Nc, m)  # a view: block j is S_j
-    for k in range(Np):
-        active = min(k + 1, Nc)
-        response[:, : m * active] = A[k] @ response[:, : m * active]
-        blocks[:, :active] += B[k][:, None, :]
-        history[k] = response
-    return (C @ history).reshape(Np * C.shape[0], M)
-
-
-def free_response_maps(A: np.ndarray, B: np.ndarray, d: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """(n Np, 2N + m + 1): the outputs y_1..y_Np of z_{k+1} = A_k z_k + B_k v + d_k + w as one
-    matrix on [z_0; v; w; 1] (v and w held over the horizon).
-
-    X_k = [Φ_k | Γ_k | Ω_k | δ_k] (the state's response to z_0, v, w and the d's) obeys
-    X_{k+1} = A_k X_k + [0 | B_k | I | d_k], X_0 = [I | 0 | 0 | 0]: one N×N by N×(2N+m+1)
-    product a step, worth it for a small lift (``SMALL_LIFT``), where it replaces a loop of
-    matrix-vector products at every solve by one product.
-    """
-    Np, N, m = B.shape
-    width = 2 * N + m + 1
-    drive = np.zeros((Np, N, width))
-    drive[:, :, N : N + m] = B
-    drive[:, :, N + m : 2 * N + m] = np.eye(N)
-    drive[:, :, -1] = d
-    history = np.empty((Np, N, width))
-    response = np.zeros((N, width))
-    response[:, :N] = np.eye(N)
-    for k in range(Np):  # each step needs the last
-        response = A[k] @ response + drive[k]
-        history[k] = response
-    return (C @ history).reshape(Np * C.shape[0], width)
-
-
-def time_invariant_theta(
-    A: np.ndarray, B: np.ndarray, C: np.ndarray, Np: int, Nc: int
-) -> np.ndarray:
-    """Θ (n Np, m Nc) of a time-invariant model: block (i, j) is C S_{i+1-j} for j <= i, with
-    the step responses S_l = Σ_{q<l} A^q B (one N×N by N×m product per step)."""
-    N, m = B.shape
-    steps = np.zeros((Np + 1, C.shape[0], m))  # C S_0 = 0
-    power_b, step = B.copy(), np.zeros((N, m))
-    for length in range(1, Np + 1):
-        step += power_b
-        power_b = A @ power_b
-        steps[length] = C @ step
-    rows, columns = np.arange(Np)[:, None], np.arange(Nc)[None, :]
-    index = np.where(columns <= rows, rows + 1 - columns, 0)  # (Np, Nc) into steps
-    blocks = steps[index]  # (Np, Nc, n, m)
-    return blocks.transpose(0, 2, 1, 3).reshape(Np * C.shape[0], Nc * m)
 
 
 def _check_piqp_shapes(

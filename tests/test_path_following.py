@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from controllers import BicycleMPCConfig, DEMPCConfig
-from controllers.condensed_qp import time_invariant_theta
+from controllers.condensing import time_invariant_theta
 from controllers.path_following import FrenetOutputs
 from harness.core.episode import MinMaxNormalizer
 from harness.references import DoubleLaneChange, ReferencePath

@@ -32,7 +32,7 @@ KNOWN: dict[tuple[str, str], tuple[int, int]] = {
     ("class", "learners/deep_edmd.py:DeepEDMD"): (291, 23),
     ("class", "learners/single_track.py:SingleTrack"): (481, 30),
     ("class", "controllers/condensed_qp.py:CondensedQP"): (528, 33),
-    ("module", "controllers/condensed_qp.py"): (962, 0),
+    ("module", "controllers/condensed_qp.py"): (895, 0),
     ("class", "controllers/de_mpc.py:DEMPC"): (571, 24),
     ("function", "controllers/de_mpc.py:__init__"): (90, 0),
     ("function", "controllers/de_mpc.py:act"): (88, 0),
