@@ -12,7 +12,9 @@ from harness.core.paths import REPO_ROOT
 
 # How the work was organised, not what the harness is: its sittings, its ticket numbers, who
 # keeps it. Topics name findings; commits date them.
-DIARY = re.compile(r"\bsessions?\b|\bissues? #?[0-9]+|\bthe maintainers\b", re.IGNORECASE)
+DIARY = re.compile(
+    r"\bsessions?\b|\bissues? #?[0-9]+|\bthe maintainers\b|\bissues?'", re.IGNORECASE
+)
 PYTEST_SCOPE = 'scope="session"'  # pytest's own word for a fixture shared by the whole run
 TEXT = (".md", ".py", ".yaml", ".yml", ".toml", ".txt", ".cfg", ".c", ".xml", "")
 

@@ -101,7 +101,7 @@ def test_truncated_deleted_and_altered_episodes_are_recollected_alone_to_the_sam
 
 def flip_a_byte(text: bytes) -> bytes:
     raw = bytearray(text)
-    raw[200] ^= 0x80  # the report: 'byte 0x89 in position 200'
+    raw[200] ^= 0x80  # a reported case: 'byte 0x89 in position 200'
     return bytes(raw)
 
 

@@ -90,7 +90,7 @@ class StepCase:
         return f"throttle{self.step:+g}_{speed}"
 
 
-# The cases: steering-wheel steps of +-20 and 60 deg, and a throttle step, at 10 and
+# The cases: steering-wheel steps of +-20 and 60 deg, and a throttle step, at 10 and
 # 22 m/s (22.2 m/s = 80 km/h is where the main job tracks the ISO 3888 lane change).
 DEFAULT_CASES: tuple[StepCase, ...] = tuple(
     case

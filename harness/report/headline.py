@@ -62,7 +62,7 @@ STATES = ("vx", "vy", "yaw_rate")
 
 # The paper's reported prediction RMSE (vx m/s, vy m/s, yaw rate rad/s) on its two CarSim test
 # episodes (its Tables of the predicted states' RMSE, with and without the random layer): the
-# bars of the issue's paper-scale target. Its drives are its own; the comparison is of orders.
+# bars of the paper-scale target. Its drives are its own; the comparison is of orders.
 PAPER_REPORTED: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
     "EDMD": ((1.99, 0.36, 0.20), (1.42, 0.25, 0.66)),
     "ELM-EDMD": ((4.88, 0.55, 0.37), (5.61, 0.27, 0.44)),
