@@ -14,7 +14,7 @@ from typing import cast
 
 import numpy as np
 
-from controllers.de_mpc import linearization_of
+from controllers.linearization import linearization_of
 from harness.core.contracts import LiftedModel, Model
 from harness.core.episode import MinMaxNormalizer
 

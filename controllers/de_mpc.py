@@ -39,7 +39,13 @@ import numpy as np
 from controllers.blas import single_threaded
 from controllers.condensed_qp import QP_SOLVERS, CondensedQP, QPSolution, TimeVaryingQP
 from controllers.disturbance import DisturbanceEstimator
-from controllers.linearization import BilinearLinearization, SecantInputs
+from controllers.linearization import (
+    BilinearLinearization,
+    SecantInputs,
+    check_lifted_model,
+    check_linearizable,
+    linearization_of,
+)
 from controllers.path_following import ERRORS, OUTPUTS, FrenetOutputs
 from controllers.pedal_sides import PEDAL, PedalSides
 from harness.core.budget import check_memory
@@ -54,12 +60,10 @@ from harness.core.checks import (
 )
 from harness.core.contracts import (
     COMPUTE_DELAYS,
-    BilinearModel,
     LiftedModel,
     LinearizableModel,
     Model,
     StepInfo,
-    dynamics_of,
 )
 from harness.core.episode import MinMaxNormalizer
 from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
@@ -252,6 +256,31 @@ class DEMPCConfig:
         """(Q (n, n), R (m, m)) as matrices, each checked symmetric positive definite."""
         return _weight("Q", self.Q, STATES), _weight("R", self.R, INPUTS)
 
+    def increment_limits(self, normalizer: MinMaxNormalizer) -> np.ndarray:
+        """(m,) each input's increment limit per step in the model's normalized units; the
+        pedal's is the tighter of the throttle's and the brake's on the signed scale."""
+        to_v = normalizer.inputs
+        origin = to_v(np.zeros(INPUTS))
+        pedal_step = min(
+            self.throttle_increment / THROTTLE_MAX, self.brake_increment_mpa / BRAKE_MAX_MPA
+        )
+        return np.array(
+            [
+                to_v(np.array([self.steer_wheel_increment_deg, 0.0]))[0] - origin[0],
+                to_v(np.array([0.0, pedal_step * THROTTLE_MAX]))[1] - origin[1],
+            ]
+        )
+
+    def solver_settings(self) -> dict[str, Any]:
+        """What every QP of the controller is solved with (CondensedQP's keywords)."""
+        return {
+            "rho": self.rho,
+            "tol": self.tol,
+            "max_iter": self.max_iter,
+            "active_set": self.active_set,
+            "qp_solver": self.qp_solver,
+        }
+
     def secant_spans(self) -> np.ndarray:
         """input_secant_span as one span per input, each a fraction of its range in [0, 1]."""
         value = self.input_secant_span
@@ -326,36 +355,24 @@ class DEMPC:
         Q, R = config.weights()
         self.linearization = linearization_of(model)
         if self.linearization is None:
-            A, B, C = _check_model(cast(LiftedModel, model))
+            A, B, C = check_lifted_model(cast(LiftedModel, model))
         else:
-            C = _check_linearizable(self.linearization)
+            C = check_linearizable(self.linearization)
         self.normalizer: MinMaxNormalizer = model.normalizer_
         to_v = self.normalizer.inputs
         self.u_min = np.array([config.steer_wheel_min_deg, config.pedal_min])
         self.u_max = np.array([config.steer_wheel_max_deg, config.pedal_max])
         origin = to_v(np.zeros(INPUTS))
-        pedal_step = min(
-            config.throttle_increment / THROTTLE_MAX, config.brake_increment_mpa / BRAKE_MAX_MPA
-        )
-        dv_max = np.array(
-            [
-                to_v(np.array([config.steer_wheel_increment_deg, 0.0]))[0] - origin[0],
-                to_v(np.array([0.0, pedal_step * THROTTLE_MAX]))[1] - origin[1],
-            ]
-        )
+        dv_max = config.increment_limits(self.normalizer)
         settings: dict[str, Any] = {
             "Np": self.Np,
             "Nc": self.Nc,
             "Q": Q,
             "R": R,
-            "rho": config.rho,
             "v_min": to_v(self.u_min),
             "v_max": to_v(self.u_max),
             "dv_max": dv_max,
-            "tol": config.tol,
-            "max_iter": config.max_iter,
-            "active_set": config.active_set,
-            "qp_solver": config.qp_solver,
+            **config.solver_settings(),
         }
         self.qp: CondensedQP
         if self.linearization is None:
@@ -934,41 +951,6 @@ def _held(plan: np.ndarray, steps: int) -> np.ndarray:
     return np.vstack([plan, np.repeat(plan[-1:], steps - len(plan), axis=0)])
 
 
-def linearization_of(model: Model) -> LinearizableModel | None:
-    """How DE-MPC reads ``model``, by the dynamics it declares: None for lifted-linear (one QP for
-    the whole run), else the model to linearise each step."""
-    dynamics = dynamics_of(model)
-    if dynamics is None:
-        raise ValueError(
-            f"{type(model).__name__} declares no dynamics (linear, bilinear or nonlinear): "
-            "DE-MPC reads only a fitted model of harness.core.contracts"
-        )
-    if dynamics == "bilinear":
-        return BilinearLinearization(cast(BilinearModel, model))
-    if dynamics == "nonlinear":
-        return cast(LinearizableModel, model)
-    return None
-
-
-def _check_linearizable(model: LinearizableModel) -> np.ndarray:
-    """C_ of a model to linearise, checked against its lift and its linearisation's shapes."""
-    C = np.asarray(model.C_, dtype=float)
-    z = np.asarray(model.lift(np.asarray(model.normalizer_.state_min, dtype=float)), dtype=float)
-    size = z.shape[0] if z.ndim == 1 else -1
-    if C.shape != (STATES, size) or not np.all(np.isfinite(C)):
-        raise ValueError(f"model.C_ must be finite with shape ({STATES}, {size}), got {C.shape}")
-    v = np.asarray(model.normalizer_.inputs(np.zeros(INPUTS)), dtype=float)
-    A, B, d = model.linearize(z[None], v[None])
-    for name, array, shape in (
-        ("A", A, (1, size, size)),
-        ("B", B, (1, size, INPUTS)),
-        ("d", d, (1, size)),
-    ):
-        if np.shape(array) != shape:
-            raise ValueError(f"model.linearize must return {name} of shape {shape}")
-    return C
-
-
 def _check_horizon_span(Np: int, dt: float) -> None:
     """Refuse a horizon longer than ``MAX_HORIZON_S``: its prediction matrices lose all
     precision, then overflow, on a learned model's unstable modes (see ``MAX_HORIZON_S``)."""
@@ -1031,20 +1013,3 @@ def _check_range(name: str, low: float, high: float, unit: str) -> None:
             f"{low_key}..{high_key} ({low}..{high}) must lie within the plant's range "
             f"[{plant_low}, {plant_high}]"
         )
-
-
-def _check_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The contract, checked once: shapes agree and lift returns the lifted dimension."""
-    A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))
-    size = A.shape[0] if A.ndim == 2 else -1
-    for name, array, shape in (
-        ("A_", A, (size, size)),
-        ("B_", B, (size, INPUTS)),
-        ("C_", C, (STATES, size)),
-    ):
-        if array.shape != shape or not np.all(np.isfinite(array)):
-            raise ValueError(f"model.{name} must be finite with shape {shape}, got {array.shape}")
-    lifted = np.asarray(model.lift(np.asarray(model.normalizer_.state_min, dtype=float)))
-    if lifted.shape != (size,):
-        raise ValueError(f"model.lift(x) must return shape ({size},), got {lifted.shape}")
-    return A, B, C

@@ -1,4 +1,7 @@
-"""Linearisations of models that are not lifted-linear, for the time-varying DE-MPC.
+"""How DE-MPC reads a model: lifted-linear, or linearised each step (the time-varying DE-MPC).
+
+:func:`linearization_of` says which, by the dynamics a model declares, and the checks of each
+kind (``check_lifted_model``, ``check_linearizable``) run once when a controller is built.
 
 A :class:`~harness.core.contracts.BilinearModel` (z⁺ = A z + B v + Σⱼ (vⱼ − v0ⱼ) Hⱼ z) is
 linear in z for a fixed input and linear in v for a fixed state, so along a plan (z̄_k, v̄_k) it
@@ -14,12 +17,23 @@ with A_k = A + Σⱼ (v̄_kj − v0ⱼ) Hⱼ, B_k = B + [H₁ z̄_k … H_m z̄_
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, cast
 
 import numpy as np
 
-from harness.core.contracts import BilinearModel, Dynamics, LinearizableModel
+from harness.core.contracts import (
+    INPUT_NAMES,
+    STATE_NAMES,
+    BilinearModel,
+    Dynamics,
+    LiftedModel,
+    LinearizableModel,
+    Model,
+    dynamics_of,
+)
 from harness.core.episode import MinMaxNormalizer
+
+STATES, INPUTS = len(STATE_NAMES), len(INPUT_NAMES)
 
 
 class BilinearLinearization:
@@ -117,3 +131,58 @@ class SecantInputs:
         # Exact at the point as the model's own: step(z, v) = A z + B v + d for either B.
         d = tangent_d + np.einsum("kaj,kj->ka", tangent - B, v)
         return A, np.ascontiguousarray(B), d
+
+
+# -- how DE-MPC reads a model ---------------------------------------------------------------
+
+
+def linearization_of(model: Model) -> LinearizableModel | None:
+    """How DE-MPC reads ``model``, by the dynamics it declares: None for lifted-linear (one QP for
+    the whole run), else the model to linearise each step."""
+    dynamics = dynamics_of(model)
+    if dynamics is None:
+        raise ValueError(
+            f"{type(model).__name__} declares no dynamics (linear, bilinear or nonlinear): "
+            "DE-MPC reads only a fitted model of harness.core.contracts"
+        )
+    if dynamics == "bilinear":
+        return BilinearLinearization(cast(BilinearModel, model))
+    if dynamics == "nonlinear":
+        return cast(LinearizableModel, model)
+    return None
+
+
+def check_linearizable(model: LinearizableModel) -> np.ndarray:
+    """C_ of a model to linearise, checked against its lift and its linearisation's shapes."""
+    C = np.asarray(model.C_, dtype=float)
+    z = np.asarray(model.lift(np.asarray(model.normalizer_.state_min, dtype=float)), dtype=float)
+    size = z.shape[0] if z.ndim == 1 else -1
+    if C.shape != (STATES, size) or not np.all(np.isfinite(C)):
+        raise ValueError(f"model.C_ must be finite with shape ({STATES}, {size}), got {C.shape}")
+    v = np.asarray(model.normalizer_.inputs(np.zeros(INPUTS)), dtype=float)
+    A, B, d = model.linearize(z[None], v[None])
+    for name, array, shape in (
+        ("A", A, (1, size, size)),
+        ("B", B, (1, size, INPUTS)),
+        ("d", d, (1, size)),
+    ):
+        if np.shape(array) != shape:
+            raise ValueError(f"model.linearize must return {name} of shape {shape}")
+    return C
+
+
+def check_lifted_model(model: LiftedModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The contract, checked once: shapes agree and lift returns the lifted dimension."""
+    A, B, C = (np.asarray(m, dtype=float) for m in (model.A_, model.B_, model.C_))
+    size = A.shape[0] if A.ndim == 2 else -1
+    for name, array, shape in (
+        ("A_", A, (size, size)),
+        ("B_", B, (size, INPUTS)),
+        ("C_", C, (STATES, size)),
+    ):
+        if array.shape != shape or not np.all(np.isfinite(array)):
+            raise ValueError(f"model.{name} must be finite with shape {shape}, got {array.shape}")
+    lifted = np.asarray(model.lift(np.asarray(model.normalizer_.state_min, dtype=float)))
+    if lifted.shape != (size,):
+        raise ValueError(f"model.lift(x) must return shape ({size},), got {lifted.shape}")
+    return A, B, C
