@@ -37,7 +37,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import NamedTuple, Self
 
 import numpy as np
 import rerun as rr
@@ -288,6 +288,22 @@ class _SeriesInfo:
     keys: list[str] = field(default_factory=list)
 
 
+class _Rollout(NamedTuple):
+    """The arguments of :meth:`Recorder.rollout`, as one value handed to the writer."""
+
+    name: str
+    time_s: np.ndarray
+    states: np.ndarray
+    inputs: np.ndarray
+    poses: np.ndarray | None
+    state_names: Sequence[str]
+    input_names: Sequence[str]
+    extra: Mapping[str, np.ndarray | Mapping[str, np.ndarray]] | None
+    priority: int
+    reference: np.ndarray | None
+    overlays: Mapping[str, np.ndarray] | None
+
+
 class Recorder:
     """Null recorder: accepts every call and writes nothing.
 
@@ -341,6 +357,25 @@ class Recorder:
             overlays: Further (N, len(state_names)) series drawn on each state's plot under
                 their key (a model's prediction); NaN where there is none.
         """
+        self._log_rollout(
+            _Rollout(
+                name,
+                time_s,
+                states,
+                inputs,
+                poses,
+                state_names,
+                input_names,
+                extra,
+                priority,
+                reference,
+                overlays,
+            )
+        )
+
+    def _log_rollout(self, rollout: _Rollout) -> None:
+        """What :meth:`rollout` logs (here: nothing); a recorder that writes overrides it."""
+        del rollout
 
     def scene(
         self,
@@ -467,21 +502,21 @@ class RerunRecorder(Recorder):
             strict=True,
         )
 
-    def rollout(
-        self,
-        name: str,
-        time_s: np.ndarray,
-        states: np.ndarray,
-        inputs: np.ndarray,
-        poses: np.ndarray | None = None,
-        state_names: Sequence[str] = ("vx", "vy", "yaw_rate"),
-        input_names: Sequence[str] = ("steer_wheel_deg", "pedal"),
-        extra: Mapping[str, np.ndarray | Mapping[str, np.ndarray]] | None = None,
-        priority: int = 0,
-        reference: np.ndarray | None = None,
-        overlays: Mapping[str, np.ndarray] | None = None,
-    ) -> None:
+    def _log_rollout(self, rollout: _Rollout) -> None:
         """Log one rollout; see :meth:`Recorder.rollout`. Raises ValueError on bad shapes."""
+        (
+            name,
+            time_s,
+            states,
+            inputs,
+            poses,
+            state_names,
+            input_names,
+            extra,
+            priority,
+            reference,
+            overlays,
+        ) = rollout
         self._check_open()
         if not isinstance(name, str):
             raise ValueError(f"name must be a string, got {name!r}")

@@ -22,7 +22,7 @@ KNOWN: dict[tuple[str, str], tuple[int, int]] = {
     ("function", "harness/evaluation/tracking.py:track"): (94, 0),
     ("function", "harness/plant/reference.py:vehicle_control"): (145, 0),
     ("class", "harness/recorder.py:RerunRecorder"): (486, 11),
-    ("function", "harness/recorder.py:rollout"): (108, 0),
+    ("function", "harness/recorder.py:_log_rollout"): (108, 0),
     ("function", "harness/recorder.py:_log_car"): (93, 0),
     ("function", "harness/recorder.py:blueprint"): (106, 0),
     ("function", "harness/tasks/characterize.py:plot"): (116, 0),
