@@ -370,3 +370,20 @@ def test_a_rollout_out_at_its_first_step_has_no_rmse_before_it() -> None:
     metrics = evaluate({"m": away}, [episode])["m"]["e"]
     assert metrics["diverged_at_s"] == pytest.approx(episode.time_s[1])
     assert metrics["rmse_until_diverged"] == {"vx": None, "vy": None, "yaw_rate": None}
+
+
+def test_the_prediction_figure_marks_where_a_prediction_left_the_envelope(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import harness.evaluation.prediction as prediction
+
+    drawn: list[Any] = []
+    monkeypatch.setattr(prediction, "save_figure", lambda fig, path: drawn.append(fig) or path)
+    episode = linear_episode("e", 80, 5)
+    spins = RunsAway(3.0, row=30).fit([episode], [], MinMaxNormalizer.fit([episode]))
+    evaluate({"spins": spins, "hold": Hold()}, [episode], output_dir=tmp_path)
+    (figure,) = drawn
+    at = float(episode.time_s[30])
+    for axis in figure.axes[:3]:  # one dashed line per state panel, at the time, spins' only
+        marks = [line for line in axis.lines if list(line.get_xdata()) == [at, at]]
+        assert len(marks) == 1 and marks[0].get_linestyle() == "--"

@@ -176,8 +176,13 @@ def evaluate(
                 overlays={f"predicted_{name}": _finite(p) for name, p in predictions.items()},
             )
         if output_dir is not None:
+            left = {
+                name: results[name][episode.name]["diverged_at_s"]
+                for name in predictions
+                if results[name][episode.name]["diverged_at_s"] is not None
+            }
             plot_prediction(
-                episode, predictions, Path(output_dir) / f"prediction_{episode.name}.png"
+                episode, predictions, Path(output_dir) / f"prediction_{episode.name}.png", left
             )
             save_arrays(
                 Path(output_dir) / f"prediction_{episode.name}.npz",
@@ -414,12 +419,31 @@ def _figure(episode: Episode) -> tuple[Figure, np.ndarray]:
     return fig, axes
 
 
-def plot_prediction(episode: Episode, predictions: Mapping[str, np.ndarray], path: Path) -> Path:
-    """Three state panels (measured and every learner's open-loop prediction) and the inputs."""
+def plot_prediction(
+    episode: Episode,
+    predictions: Mapping[str, np.ndarray],
+    path: Path,
+    diverged_at_s: Mapping[str, float] | None = None,
+) -> Path:
+    """Three state panels (measured and every learner's open-loop prediction) and the inputs;
+    a dashed line in a learner's colour where its prediction left the data's envelope."""
     fig, axes = _figure(episode)
     for k, (name, pred) in enumerate(predictions.items()):
+        left = (diverged_at_s or {}).get(name)
         for i in range(3):
             axes[i].plot(episode.time_s, pred[:, i], color=f"C{k}", lw=1.0, label=name)
+            if left is not None:
+                axes[i].axvline(left, color=f"C{k}", ls="--", lw=0.8)
+        if left is not None:
+            axes[0].text(
+                left,
+                1.0,
+                " diverged",
+                color=f"C{k}",
+                fontsize=7,
+                va="top",
+                transform=axes[0].get_xaxis_transform(),
+            )
     axes[0].legend(loc="upper left", fontsize=7, ncol=min(len(predictions) + 1, 4))
     axes[0].set_title(f"open-loop prediction, {episode.name} (axes clipped to 2x the data range)")
     fig.tight_layout()
