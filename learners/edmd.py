@@ -15,6 +15,7 @@ the affine terms that min-max normalization introduces (a linear plant is affine
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, ClassVar, Self
 
@@ -22,7 +23,7 @@ import numpy as np
 import torch
 
 from harness.core.budget import check_memory
-from harness.core.checks import integer, non_negative
+from harness.core.checks import integer
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
@@ -34,7 +35,9 @@ from learners.base import (
     check_rollout_args,
 )
 from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF, dictionary_from
-from learners.linalg import ridge_lstsq, row_chunks
+from learners.linalg import ridge_lstsq, ridge_weights, row_chunks
+
+log = logging.getLogger(__name__)
 
 __all__ = ["EDMD", "linear_rollout"]
 
@@ -59,7 +62,10 @@ class EDMD(KoopmanLearner):
     Args:
         dictionary: The observables phi (a :class:`~learners.dictionaries.Dictionary`, or its
             ``hyperparameters`` with ``_target_``); None gives 100 thin-plate RBFs.
-        ridge: Tikhonov weight relative to the mean squared one-step residual.
+        ridge: Tikhonov weight relative to the mean squared one-step residual; with several,
+            the one whose open-loop rollouts of the validation drives err least (a ridge of
+            1e-10, the paper's, is none: its lateral predictions run off the data on logs of
+            another car, docs/data.md).
         include_constant: Add the observable 1 to the lifted state.
         seed: Seed of the dictionary's random draw.
     """
@@ -69,17 +75,18 @@ class EDMD(KoopmanLearner):
     def __init__(
         self,
         dictionary: Dictionary | Mapping[str, Any] | None = None,
-        ridge: float = 1e-10,
+        ridge: float | Sequence[float] = 1e-10,
         include_constant: bool = True,
         seed: int = 0,
     ) -> None:
         self.dictionary = dictionary_from(dictionary)
-        self.ridge = non_negative("learner.ridge", ridge)
+        self.ridges = ridge_weights(ridge)
+        self.ridge_ = self.ridges[0]
         self.include_constant = bool(include_constant)
         self.seed = integer("learner.seed", seed, 0)
         self._hyperparameters: dict[str, Any] = {
             "dictionary": self.dictionary.hyperparameters,
-            "ridge": self.ridge,
+            "ridge": self.ridges if len(self.ridges) > 1 else self.ridges[0],
             "include_constant": self.include_constant,
             "seed": self.seed,
         }
@@ -100,8 +107,14 @@ class EDMD(KoopmanLearner):
     def fit(
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
     ) -> Self:
-        """Least squares on all one-step pairs of ``train``; ``validation`` is only checked."""
+        """Least squares on all one-step pairs of ``train``; with several ridges, the one whose
+        rollouts of ``validation`` err least (else ``validation`` is only checked)."""
         check_fit_data(train, validation, normalizer, self.name)
+        if not validation and len(self.ridges) > 1:
+            raise ValueError(
+                f"learner.ridge lists {len(self.ridges)} weights to choose from on the "
+                "validation drives, and there are none: give one weight or validation drives"
+            )
         n, m = normalizer.state_min.shape[0], normalizer.input_min.shape[0]
         self.check_size(max(len(e) for e in train), n, m)
         self._check_enough_pairs(sum(len(e) - 1 for e in train), n, m)
@@ -116,12 +129,49 @@ class EDMD(KoopmanLearner):
                 for rows in row_chunks(z[:-1], _CHUNK_ROWS):
                     yield self._regression_rows(z[:-1][rows], v[:-1][rows], z[1:][rows])
 
-        theta = ridge_lstsq(pairs(), self.ridge)  # (regressors, N)
-        n_lift = theta.shape[1]
-        self._set_matrices(theta.T)
-        n = normalizer.state_min.shape[0]
-        self.C_ = np.eye(n, n_lift)
+        thetas = [ridge_lstsq(pairs(), ridge) for ridge in self.ridges]  # (regressors, N) each
+        self.C_ = np.eye(normalizer.state_min.shape[0], thetas[0].shape[1])
+        best = 0
+        if len(thetas) > 1:
+            scores = [self._validation_score(theta, validation) for theta in thetas]
+            self.validation_scores_ = dict(zip(self.ridges, scores, strict=True))
+            if not np.any(np.isfinite(scores)):
+                raise ValueError(
+                    f"{self.name}: every ridge in learner.ridge={self.ridges} diverged on the "
+                    "validation drives; try larger weights"
+                )
+            best = int(np.argmin(scores))
+            log.info("%s: ridge %.0e chosen on the validation drives", self.name, self.ridges[best])
+        self.ridge_ = self.ridges[best]
+        self._set_matrices(thetas[best].T)
         return self
+
+    def _validation_score(self, theta: np.ndarray, episodes: Sequence[Episode]) -> float:
+        """The mean over drives of sum_i (RMSE_i / span_i)² of ``theta``'s open-loop rollout,
+        in normalized units (as input EDMD scores its ridges); inf where it diverged."""
+        self._set_matrices(theta.T)
+        total = 0.0
+        with np.errstate(over="ignore", invalid="ignore"):
+            for e in episodes:
+                predicted = self.normalizer_.states(self.predict(e.states[0], e.inputs[:-1]))
+                error = predicted[1:] - self.normalizer_.states(e.states)[1:]
+                total += float(np.sum(np.mean(error**2, axis=0)))
+        score = total / len(episodes)
+        return score if np.isfinite(score) else float("inf")
+
+    @property
+    def fit_summary(self) -> dict[str, Any]:
+        """With several ridges: the chosen one and each candidate's validation score (null where
+        its rollout diverged); empty with one."""
+        scores = getattr(self, "validation_scores_", None)
+        if len(self.ridges) < 2 or not scores:
+            return {}
+        return {
+            "ridge": self.ridge_,
+            "validation_scores": {
+                f"{r:g}": (v if np.isfinite(v) else None) for r, v in scores.items()
+            },
+        }
 
     def lifted_dim(self, n: int = STATE_DIM) -> int:
         """N = n + 1 (the constant, if any) + K."""

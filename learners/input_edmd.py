@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from harness.core.budget import check_memory
-from harness.core.checks import integer, is_number, non_negative, require
+from harness.core.checks import integer, non_negative
 from harness.core.contracts import Dynamics
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
@@ -62,7 +62,7 @@ from learners.base import (
     check_rollout_args,
 )
 from learners.dictionaries import Dictionary, ThinPlateRBF, dictionary_from
-from learners.linalg import Triangle, row_chunks
+from learners.linalg import Triangle, ridge_weights, row_chunks
 
 __all__ = ["InputEDMD"]
 
@@ -107,7 +107,7 @@ class InputEDMD(Learner):
         self.dictionary = dictionary_from(
             dictionary if dictionary is not None else ThinPlateRBF(500, center_draw="samples")
         )
-        self.ridges = _ridges(ridge)
+        self.ridges = ridge_weights(ridge)
         self.include_constant = bool(include_constant)
         self.seed = integer("learner.seed", seed, 0)
         self.margin = (
@@ -312,15 +312,3 @@ class InputEDMD(Learner):
         self.dictionary.set_state(
             {k: v.numpy() for k, v in state.items() if k not in ("theta", "ridge")}
         )
-
-
-def _ridges(ridge: Any) -> list[float]:
-    """``learner.ridge`` as a list: one number or a non-empty list of numbers, each >= 0. A
-    string is neither, even ``'1e-4'`` (a quoted override): iterated, it is its characters."""
-    wanted = "a number >= 0 or a non-empty list of them"
-    values = [ridge] if is_number(ridge) else ridge
-    if isinstance(values, str | bytes) or not isinstance(values, Sequence) or not values:
-        require(False, "learner.ridge", wanted, ridge)
-    for value in values:
-        require(is_number(value), "learner.ridge", wanted, ridge)
-    return [non_negative("learner.ridge", value) for value in values]

@@ -10,9 +10,12 @@ solution as ``np.linalg.lstsq`` on the full data.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from typing import Any
 
 import numpy as np
+
+from harness.core.checks import is_number, non_negative, require
 
 
 def ridge_lstsq(chunks: Iterable[tuple[np.ndarray, np.ndarray]], ridge: float = 0.0) -> np.ndarray:
@@ -78,3 +81,15 @@ class Triangle:
 def row_chunks(a: np.ndarray, size: int) -> Iterable[slice]:
     """Slices cutting ``len(a)`` rows into blocks of at most ``size``."""
     return (slice(i, min(i + size, len(a))) for i in range(0, len(a), size))
+
+
+def ridge_weights(ridge: Any) -> list[float]:
+    """``learner.ridge`` as a list: one number or a non-empty list of numbers, each >= 0. A
+    string is neither, even ``'1e-4'`` (a quoted override): iterated, it is its characters."""
+    wanted = "a number >= 0 or a non-empty list of them"
+    values = [ridge] if is_number(ridge) else ridge
+    if isinstance(values, str | bytes) or not isinstance(values, Sequence) or not values:
+        require(False, "learner.ridge", wanted, ridge)
+    for value in values:
+        require(is_number(value), "learner.ridge", wanted, ridge)
+    return [non_negative("learner.ridge", value) for value in values]

@@ -145,7 +145,7 @@ def test_the_config_builds_it_and_bad_values_fail_in_one_line() -> None:
     bad = compose("learner=bilinear_edmd", "learner.ridge_prior=ones").learner
     model = instantiate(config)
     assert isinstance(model, BilinearEDMD) and model.name == "bilinear_edmd"
-    assert model.ridge_prior == "identity" and model.ridge == 1e-4
+    assert model.ridge_prior == "identity" and model.ridges == [1e-4]
     assert model.hyperparameters["dictionary"]["num_centers"] == 100
     with pytest.raises(Exception) as info:
         instantiate(bad)

@@ -193,3 +193,35 @@ def test_koopman_learners_honour_the_mpc_contract() -> None:
             z = model.A_ @ z + model.B_ @ normalizer.inputs(u)
             expected.append(normalizer.states_inverse(model.C_ @ z))
         np.testing.assert_allclose(model.predict(x0, inputs), expected, rtol=1e-6, atol=1e-6)
+
+
+def test_several_ridges_are_chosen_between_on_the_validation_drives() -> None:
+    """Each candidate is fitted and scored by its open-loop rollouts of the validation drives
+    (mean over drives of the normalized squared RMSE summed over states); the least wins, and
+    its fit is the one single ridge would give."""
+    episodes = drive_episodes(5, 20.0, first_seed=30)
+    normalizer = MinMaxNormalizer.fit(episodes[:3])
+    ridges = [1e-10, 1e-2, 10.0]
+    chosen = EDMD(ThinPlateRBF(30), ridge=ridges).fit(episodes[:3], episodes[3:], normalizer)
+    scores = chosen.fit_summary["validation_scores"]
+    assert set(scores) == {"1e-10", "0.01", "10"}
+    best = min(ridges, key=lambda r: scores[f"{r:g}"] if scores[f"{r:g}"] is not None else np.inf)
+    assert chosen.fit_summary["ridge"] == best == chosen.ridge_
+    alone = EDMD(ThinPlateRBF(30), ridge=best).fit(episodes[:3], episodes[3:], normalizer)
+    np.testing.assert_array_equal(chosen.A_, alone.A_)
+    # The score is what it says: recomputed here for the winner.
+    total = 0.0
+    for e in episodes[3:]:
+        error = normalizer.states(alone.predict(e.states[0], e.inputs[:-1]))[1:]
+        error -= normalizer.states(e.states)[1:]
+        total += float(np.sum(np.mean(error**2, axis=0)))
+    assert scores[f"{best:g}"] == pytest.approx(total / 2, rel=1e-12)
+    assert alone.fit_summary == {} and alone.hyperparameters["ridge"] == best
+
+
+def test_several_ridges_without_validation_drives_are_refused_in_one_line() -> None:
+    episodes = drive_episodes(2, 10.0, first_seed=40)
+    with pytest.raises(ValueError, match=r"learner\.ridge lists 2 weights to choose from"):
+        EDMD(ThinPlateRBF(5), ridge=[1e-6, 1e-2]).fit(episodes, [], MinMaxNormalizer.fit(episodes))
+    with pytest.raises(ValueError, match=r"learner\.ridge must be a number >= 0 or a non-empty"):
+        EDMD(ridge=[])

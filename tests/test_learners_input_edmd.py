@@ -135,8 +135,9 @@ def test_a_ridge_that_is_not_a_number_or_a_list_of_numbers_says_so(ridge) -> Non
     assert str(info.value) == (
         f"learner.ridge must be a number >= 0 or a non-empty list of them (got {ridge!r})"
     )
-    with pytest.raises(ValueError, match=r"^learner\.ridge must be a number >= 0 \(got '1e-4'\)"):
-        EDMD(ridge="1e-4")
+    with pytest.raises(ValueError) as info:  # EDMD's ridge takes the same forms
+        EDMD(ridge=ridge)
+    assert str(info.value).startswith("learner.ridge must be a number >= 0 or a non-empty list")
 
 
 def test_a_quoted_ridge_on_the_command_line_is_refused_in_one_line() -> None:
