@@ -176,11 +176,7 @@ def evaluate(
                 overlays={f"predicted_{name}": _finite(p) for name, p in predictions.items()},
             )
         if output_dir is not None:
-            left = {
-                name: results[name][episode.name]["diverged_at_s"]
-                for name in predictions
-                if results[name][episode.name]["diverged_at_s"] is not None
-            }
+            left = {name: r[episode.name]["diverged_at_s"] for name, r in results.items()}
             plot_prediction(
                 episode, predictions, Path(output_dir) / f"prediction_{episode.name}.png", left
             )
@@ -423,7 +419,7 @@ def plot_prediction(
     episode: Episode,
     predictions: Mapping[str, np.ndarray],
     path: Path,
-    diverged_at_s: Mapping[str, float] | None = None,
+    diverged_at_s: Mapping[str, float | None] | None = None,
 ) -> Path:
     """Three state panels (measured and every learner's open-loop prediction) and the inputs;
     a dashed line in a learner's colour where its prediction left the data's envelope."""
