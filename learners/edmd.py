@@ -35,7 +35,7 @@ from learners.base import (
     check_rollout_args,
 )
 from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF, dictionary_from
-from learners.linalg import ridge_lstsq, ridge_weights, row_chunks
+from learners.linalg import Triangle, ridge_weights, row_chunks
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,8 @@ class EDMD(KoopmanLearner):
                 for rows in row_chunks(z[:-1], _CHUNK_ROWS):
                     yield self._regression_rows(z[:-1][rows], v[:-1][rows], z[1:][rows])
 
-        thetas = [ridge_lstsq(pairs(), ridge) for ridge in self.ridges]  # (regressors, N) each
+        triangle = Triangle.of(pairs())  # one pass over the data, then one small solve a ridge
+        thetas = [triangle.solve(ridge) for ridge in self.ridges]  # (regressors, N) each
         self.C_ = np.eye(normalizer.state_min.shape[0], thetas[0].shape[1])
         best = 0
         if len(thetas) > 1:

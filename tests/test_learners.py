@@ -247,8 +247,10 @@ def test_edmd_and_elm_edmd_are_one_class_whose_dictionary_the_config_chooses(
 ) -> None:
     learner = instantiate(learner_config(name))
     assert type(learner) is EDMD and type(learner.dictionary) is dictionary
-    learner.fit(data["train"], [], data["normalizer"])
+    learner.fit(data["train"], data["validation"], data["normalizer"])
     assert learner.A_.shape == (3 + 1 + size, 3 + 1 + size)  # [x; 1; phi(x)]
+    if name == "edmd":  # the preset chooses its ridge on the validation drives and says which
+        assert len(learner.ridges) > 1 and learner.fit_summary["ridge"] in learner.ridges
     sin = instantiate(learner_config("elm_edmd", "learner.dictionary.activation=sin"))
     assert sin.dictionary.activation == "sin"
     swapped = instantiate(
