@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: help setup run test test-fp test-ray bench format lint
+.PHONY: help setup run test test-fp test-ray bench format lint docs
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-8s %s\n", $$1, $$2}'
@@ -28,8 +28,12 @@ lint: setup  ## ruff (lint and format check) and mypy
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
 
-test: lint  ## lint and type-check, then the test suite (slow tests excluded)
+test: lint docs  ## lint and type-check, build the docs strictly, then the test suite (slow tests excluded)
 	$(BIN)/python -m pytest
+
+docs: setup  ## the documentation site, built strictly into site/ (a broken link or anchor fails)
+	$(BIN)/python -m harness.config_reference --check
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 # The floating-point paths `make test-fp` runs the suite on, one after the other: one BLAS thread,
 # OpenBLAS's kernels for three CPU families, and NumPy without its AVX2/AVX-512 dispatch.

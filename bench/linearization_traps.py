@@ -10,7 +10,7 @@ how long after the reference the car first passes 1 m/s at the start and after t
 stop, and the mean pedal over the stop's last 0.2 s. ``--figure PNG`` draws every run's vx and
 pedal against the reference. A model is any ``model_<learner>.pt`` a run wrote.
 
-The two traps in docs/control.md, each with its command there:
+The two traps in docs/findings/smooth_driving.md, each with its command there:
 
 - *The standstill trap* (``--factor "release_brake=false|true"``, the default; the drive starts
   from rest, stops for 4.75 s at 22.4 s and drives off again at 27.2 s);

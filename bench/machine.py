@@ -8,7 +8,7 @@ from pathlib import Path
 
 # x86-64 CPU families by vendor and family number: a virtual machine's model name is often just
 # "AMD EPYC", and two such machines of different generations differ 2-3x in a Python-bound step
-# (docs/control.md, "Every timing target met, on a faster machine").
+# (docs/findings/real_time.md, "The machine matters").
 _GENERATIONS = {
     ("AuthenticAMD", 23): "Zen 1/2",
     ("AuthenticAMD", 25): "Zen 3/4",

@@ -10,7 +10,7 @@ state's worst ratio to input EDMD fitted on the same data in the same run, the t
 and how training stopped. ``--baselines`` adds the rows of input EDMD and persistence (the
 state held). ``--jsonl FILE`` appends the row as JSON, so that the arms of a study can run in
 separate processes (two at a time on two cores, one thread each) and be tabulated together
-with ``--table FILE``. The study of docs/learners.md (*Training the networks*) ran on this.
+with ``--table FILE``. The study of docs/findings/training_recipe.md ran on this.
 """
 
 from __future__ import annotations

@@ -5,7 +5,8 @@ Models are fitted on ``data=default`` (collected once into the dataset cache, as
 does) and close the loop on the sedan through the ISO 3888-1 double lane change at 80 km/h:
 ``controller.reference`` states and path, each without and with ``offset_free``; ``--weights``
 adds path-following runs with other ``Q_path`` diagonals (``vx:vy:r:lateral:heading``, e.g.
-``1000:0:0:200:2000``), the study that chose the default (docs/control.md, "Path following").
+``1000:0:0:200:2000``), the study that chose the default (docs/findings/lane_change.md, "Path
+following").
 
 Printed per run: the course's judgement (maximum lateral deviation, cones hit), the yaw-rate RMSE
 against the reference's states, the error the run ends with (``final_error``: mean |x − x_ref|

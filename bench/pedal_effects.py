@@ -8,8 +8,8 @@ run without it, m/s) after 1, 5, 10, 30 and 60 steps of the model's period: the 
 DE-MPC sees the first 10, the main job's 60/50 all 60. A model is read as the controller reads it
 (:class:`~controllers.as_controlled.AsControlled`: lift, its step, x = C z), from the state the
 plant was in. A row whose early effect has the wrong sign, or is a hundred times the plant's, is a
-model a short-horizon MPC cannot use, whatever its long-run accuracy (docs/learners.md, "The
-split as a model option").
+model a short-horizon MPC cannot use, whatever its long-run accuracy
+(docs/findings/deep_edmd_vx.md, "The split as a model option").
 """
 
 from __future__ import annotations

@@ -16,8 +16,9 @@ in its [-1, 1] feature) in bands of speed, the slope of each side per band. One 
 sides and every speed is what a model with a constant B assumes. ``--baselines`` adds the bars
 every model must clear: persistence (the state held) and the identified single-track model, on
 the pedal as it is. ``--jsonl FILE`` appends the rows, ``--table FILE`` prints a file's rows
-(arms in separate processes, two at a time on two cores). docs/learners.md, "Why the affine
-models miss vx", ran on this.
+(arms in separate processes, two at a time on two cores). docs/findings/deep_edmd_vx.md, "The
+pedal's
+two slopes", ran on this.
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ class BicycleMPCConfig(DEMPCConfig):
     model: Any = None  # mapping of SingleTrack's keyword arguments; None: its defaults
     # At the states the last plan predicted, not frozen: its three-state Θ costs the same either
     # way (2.4 against 2.5 ms a step at 60/50, bench), and frozen hit 2 cones offset-free at
-    # 10/7 on the main job's data where predicted hits none (docs/control.md, 2026-11-27).
+    # 10/7 on the main job's data where predicted hits none (docs/findings/lane_change.md).
     linearization: str = "predicted"
 
     def __post_init__(self) -> None:

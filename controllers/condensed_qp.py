@@ -65,7 +65,7 @@ from controllers.condensing import (
 
 PATHS = ("unconstrained", "active_set", "daqp", "piqp", "failed")
 # The active-set solver tried before PIQP: DAQP (default: the bounded worst case, measured in
-# docs/control.md) or ours (Lawson-Hanson on the dual, hot-started).
+# docs/findings/real_time.md) or ours (Lawson-Hanson on the dual, hot-started).
 QP_SOLVERS = ("daqp", "active_set")
 # DAQP's exit flag for an optimum (1); 2 (soft optimum) cannot happen without soft rows.
 DAQP_OPTIMAL = 1

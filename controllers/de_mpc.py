@@ -81,7 +81,7 @@ RELEASE_BELOW_MPS = 1.0
 RELEASE_MARGIN_MPS = 0.1
 # Where a time-varying model is linearised: at every point of the previous plan (exact along
 # the horizon), or at the current state and next input only, held over the horizon (frozen:
-# Θ from one step response: far cheaper for a large lift at 60/50, see docs/control.md).
+# Θ from one step response: far cheaper for a large lift at 60/50, see docs/findings/real_time.md).
 LINEARIZATIONS = ("plan", "frozen", "predicted")
 # What the cost follows: the reference's states (the paper's), or a run's path when it has one
 # (lateral and heading error, controllers/path_following.py; state tracking where it has none).
@@ -96,7 +96,7 @@ BAND_QPS = 8
 # The longest prediction horizon, Np·dt (s): 1000 steps at 10 ms, 17 times the paper's longest
 # (60 steps) and the span of the pipeline's prediction windows (task.prediction_window_s). Θ holds
 # C·Aᵏ·B for k <= Np, so a learned model's mode outside the unit circle (spectrum.unstable_modes;
-# bilinear EDMD's fastest on data=default doubles in 2.5 s, docs/bilinear.md) grows as
+# bilinear EDMD's fastest on data=default doubles in 2.5 s, docs/findings/input_models.md) grows as
 # 2^(Np·dt / 2.5 s) in Θ and squared in the Hessian ΘᵀQΘ: 16-fold over 10 s, 2^400 over
 # Np = 100000 (1000 s), where the Hessian overflows float64 (2^1024) after the whole run's
 # training. Every tracking step also keeps and records its predicted horizon: (T, Np, 3) floats.
@@ -122,8 +122,8 @@ class DEMPCConfig:
     # Normalized state-error weight (vx, vy, r): scalar, n diagonal entries or n x n (OmegaConf
     # has no float | list). vy at 1 % (ours; the paper's is 1000·I): a reference's vy is the
     # steady-state sideslip, opposite to r at speed, but within a 0.1 s horizon steering moves vy
-    # with r, so at 1000·I the QP trades the two errors and barely steers (docs/control.md, "The
-    # baseline that did not steer").
+    # with r, so at 1000·I the QP trades the two errors and barely steers
+    # (docs/findings/lane_change.md, "The physics baseline").
     Q: Any = (1000.0, 10.0, 1000.0)
     R: Any = 5.0  # normalized input-increment weight: scalar, m diagonal entries or m x m
     rho: float = 10.0  # slack weight; the slack is relative to each increment limit
@@ -138,13 +138,15 @@ class DEMPCConfig:
     tol: float = 1e-6  # feasibility and optimality tolerance of every solve
     max_iter: int = 100  # PIQP iterations: the time limit of one solve
     active_set: bool = True  # hot-start from the last step's active set before PIQP
-    # The active-set solver tried before PIQP: DAQP (the bounded worst case: docs/control.md,
+    # The active-set solver tried before PIQP: DAQP (the bounded worst case:
+    # docs/findings/real_time.md,
     # "DAQP") or ours (controllers/condensed_qp.py).
     qp_solver: str = "daqp"
     sqp_iterations: int = 1  # time-varying models (bilinear, nonlinear): linearisations a step
     # Time-varying models (LINEARIZATIONS): frozen at the current point and held over the
     # horizon (Θ from one step response: at 60/50 bilinear EDMD's step 2.4-2.9x faster and
-    # inside the period, the same lane changes passed over 3 seeds, docs/control.md); predicted
+    # inside the period, the same lane changes passed over 3 seeds, docs/findings/real_time.md);
+    # predicted
     # (acados's RTI shift: at the states the last step's QP predicted, lifted, no simulation);
     # plan (along the previous plan, rolled out: Np model steps in sequence).
     linearization: str = "frozen"
@@ -177,15 +179,15 @@ class DEMPCConfig:
     # at the state it predicts (and throws the answer away), so that the feedback's active-set
     # solver starts from the working set the measurement most likely needs: the same answer,
     # fewer iterations after the measurement (at 60/50 the feedback's p99: input EDMD 3.0 ->
-    # 0.8 ms, the DNN 2.4 -> 1.0 ms; docs/control.md). A lifted-linear model's QP never
+    # 0.8 ms, the DNN 2.4 -> 1.0 ms; docs/findings/real_time.md). A lifted-linear model's QP never
     # changes, so its last working set is warm already: no presolve (it doubled its step).
     presolve: bool = True
     # Linearised models: where the plan brakes while the car is nearly stopped (< 1 m/s) and the
     # reference asks for more speed than it has, linearise at the pedal released (zero) (ours).
     # At a stop under brake a model rightly says the pedal does nothing (braking cannot push a
     # stopped car backwards), so a QP linearised there never leaves the brake: the main job's
-    # controller waited at every stop of a paper-scale test drive (docs/control.md, "The
-    # standstill trap").
+    # controller waited at every stop of a paper-scale test drive (docs/findings/smooth_driving.md,
+    # "The standstill trap").
     release_brake: bool = True
     # Linearised models: each input's column of B_k as a secant over this fraction of its range
     # (normalized units), centred on the point and kept inside the input limits; one number for
@@ -194,8 +196,8 @@ class DEMPCConfig:
     # tangent. A learned step's tangent in the pedal can be flat near the throttle-brake kink,
     # and a QP linearised there held the pedal while its reference braked: at paper scale the
     # main controller's test drive went from 0.12-1.83 to 0.063-0.088 m/s vx RMSE over input
-    # EDMD and the DNN, 2 seeds each, the baseline's unchanged (docs/control.md, "The pedal's
-    # flat tangent"). OmegaConf has no float | list.
+    # EDMD and the DNN, 2 seeds each, the baseline's unchanged (docs/findings/smooth_driving.md,
+    # "The pedal's flat tangent"). OmegaConf has no float | list.
     input_secant_span: Any = (0.0, 0.4)
 
     def __post_init__(self) -> None:

@@ -8,7 +8,7 @@ estimator as a ``_target_`` block (``controller.disturbance``; null: no disturba
 paper's DE-MPC):
 
 - :class:`OffsetFree`: w += gain · e, a fixed share of each error (gain 1 holds the last
-  step's error: the best of 0.02-1 at 10/7, docs/control.md);
+  step's error: the best of 0.02-1 at 10/7, docs/findings/lane_change.md);
 - :class:`KalmanDisturbance`: w a random walk observed through e, each coordinate's gain the
   Kalman filter's: large while w is unknown, settling to the steady-state gain that weighs how
   fast w moves against how noisy a step's error is.

@@ -85,7 +85,8 @@ class SecantInputs:
     throttle-brake kink (a fitted smooth map overshoots where the true one bends), and a QP
     linearised there sees no use in moving the pedal and holds it: seed 1 of input EDMD at paper
     scale coasted at 0.05 throttle for four seconds while its reference braked from 19 to 10 m/s
-    (docs/control.md, "The pedal's flat tangent"). The secant, (step(v + h) − step(v − h)) / 2h
+    (docs/findings/smooth_driving.md, "The pedal's flat tangent"). The secant, (step(v + h) −
+    step(v − h)) / 2h
     with h = span / 2 kept inside [v_min, v_max], sees past such a wiggle to the slope that
     braking or throttle has over a usable pedal move."""
 

@@ -60,7 +60,8 @@ log = logging.getLogger(__name__)
 
 # Views the default layout holds at most: a blueprint of about 40 rollout tabs (320 views) made
 # the viewer (0.41) refuse the whole recording ("Data source finished without loading a
-# recording"), 30 tabs (240 views) loaded (synthetic recordings; docs/reliability_run.md). Tabs
+# recording"), 30 tabs (240 views) loaded (synthetic recordings;
+# docs/reference/reliability_run.md). Tabs
 # go in priority order until the next would pass it; every rollout stays in the recording.
 MAX_VIEWS = 200
 # The narrowest y range of a state's plot (SI): what a driver would call a small change of it.

@@ -403,7 +403,8 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         refit_inputs_lstsq: After training (and at every validation), replace B alone by the
             least-squares fit of z_{k+1} - A z_k = B u_k on the lifted training data, with the
             trained A (ours: the one-step input response DE-MPC and its offset-free estimate
-            rely on; docs/learners.md, "B by least squares"). Not with refit_koopman_lstsq.
+            rely on; docs/findings/deep_edmd_vx.md, "B by least squares"). Not with
+            refit_koopman_lstsq.
         loss_scales: Weigh each state's squared error in L_ox, L_xx in units of its scale
             (physical units, e.g. [0.2, 0.1, 0.05]; ours). None: the paper's normalized units.
         random_layer: ``enabled``, ``std`` of the extra encoder layer redrawn every step.
@@ -512,7 +513,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         moves the states the decoder's way (``readouts_agree``; ours). Not a selection rule:
         ranking the checkpoints that disagree last changed no choice on data=default (one
         seed's C z answered the throttle by braking in every candidate); ``alpha.readout``
-        trains it instead (docs/learners.md, "The read-out DE-MPC predicts with")."""
+        trains it instead (docs/findings/deep_edmd_vx.md, "The controller's readout")."""
         score = super()._rollout_scorer(train, validation)
         if self.prediction_output == "linear":  # the score already is C z's
             return score

@@ -3,7 +3,7 @@
 The paper's network is [n + m, 32, 64, 128, 128, 64, 32, n] (ReLU hidden layers, linear
 output) on normalized coordinates (``learner=dnn_paper``); ``learner=dnn`` uses [n + m, 128, 128,
 128, n] (ours): with our training the narrow, deep one predicts whole drives 3-6x worse
-(docs/learners.md, *The network's shape*).
+(docs/findings/training_recipe.md, *The network's shape*).
 
 Loss over windows of p = ``horizon`` steps (the paper's eq. for L_mlp, batch mean)::
 

@@ -65,7 +65,7 @@ class EDMD(KoopmanLearner):
         ridge: Tikhonov weight relative to the mean squared one-step residual; with several,
             the one whose open-loop rollouts of the validation drives err least (a ridge of
             1e-10, the paper's, is none: its lateral predictions run off the data on logs of
-            another car, docs/data.md).
+            another car, docs/findings/other_cars.md).
         include_constant: Add the observable 1 to the lifted state.
         seed: Seed of the dictionary's random draw.
     """

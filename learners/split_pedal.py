@@ -5,8 +5,9 @@ Why: the sedan's brake decelerates 7.3-7.6 m/s² per unit of pedal at every spee
 accelerates 1.5 per unit at low speed and 0.56 above 25 m/s (``python -m bench.pedal_structure
 --slopes``). A model affine in u has one column of B for the pedal: one slope for both sides. Fed
 throttle = max(p, 0) and brake = max(-p, 0) (the pedal's feature, each in [0, 1]) as two columns,
-the same model has a slope for each, and Deep EDMD's whole-drive vx fell 1.4-2.6x (docs/learners.md,
-"Why the models affine in the pedal miss vx").
+the same model has a slope for each, and Deep EDMD's whole-drive vx fell 1.4-2.6x
+(docs/findings/deep_edmd_vx.md,
+"The pedal's two slopes").
 
 To everything outside, :class:`SplitPedal` is a learner of the dataset's own inputs
 (``normalizer_`` is the caller's, with the signed pedal): ``predict`` takes the pedal, and for

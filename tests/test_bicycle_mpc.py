@@ -3,8 +3,8 @@
 The reference's lateral velocity is the steady-state sideslip, vy = -1.3 r at 80 km/h, but in
 the first 0.1 s (DE-MPC's horizon) steering moves vy the same way as r (the front tyre's force
 pushes the centre of gravity before the sideslip builds up). With vy weighted as much as r the
-QP traded one error against the other and did not steer (docs/control.md, "The baseline that
-did not steer").
+QP traded one error against the other and did not steer (docs/findings/lane_change.md, "The physics
+baseline").
 """
 
 from __future__ import annotations

@@ -431,7 +431,8 @@ def test_a_wrong_setting_names_its_key_in_one_line(settings: dict, message: str)
 
 def test_the_longest_horizon_allowed_stays_well_posed_on_a_fast_unstable_mode() -> None:
     """MAX_HORIZON_S's reason: a mode doubling every 2.5 s (bilinear EDMD's fastest on
-    data=default, docs/bilinear.md) grows 16-fold over 10 s; the Hessian stays finite and SPD."""
+    data=default, docs/findings/input_models.md) grows 16-fold over 10 s; the Hessian stays finite
+    and SPD."""
     model = linear_model()
     model.A_[0, 0] = 2 ** (0.01 / 2.5)  # vx's mode: |λ| = 1.0028
     steps = round(MAX_HORIZON_S / 0.01)

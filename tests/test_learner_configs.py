@@ -127,7 +127,8 @@ def check_linearization(learner: Learner, drive: Episode) -> None:
 
 def test_the_paper_presets_keep_the_papers_table_where_our_defaults_depart_from_it() -> None:
     """``learner=*_paper`` is the paper's Table of hyperparameters as written; the defaults are
-    ours (docs/learners.md), so a change to a default must not leak into the paper's preset."""
+    ours (docs/findings/training_recipe.md), so a change to a default must not leak into the
+    paper's preset."""
     dnn, dnn_paper = learner_config("dnn"), learner_config("dnn_paper")
     assert list(dnn_paper.hidden) == [32, 64, 128, 128, 64, 32]
     assert list(dnn.hidden) != list(dnn_paper.hidden)  # ours: wider and shallower

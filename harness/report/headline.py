@@ -8,7 +8,8 @@
 - ``main job`` (from ``main_job``): what ``python -m harness`` gives per learner and controller
   over seeds: the test drives open loop, the 80 km/h lane change, the test drive tracked, and
   the time of a control step; ``main job output``: what its seed-0 run printed at its end.
-- ``logs`` (from ``ddk_carsim``, in docs/data.md): a study on driving logs, per learner: each
+- ``logs`` (from ``ddk_carsim``, in docs/findings/authors_carsim.md): a study on driving logs, per
+learner: each
   seed's mean over the test runs, then mean ± std over seeds, in 3 s and 1.5 s windows and over
   whole runs, a seed whose run diverged counted and not averaged.
 
@@ -251,7 +252,7 @@ def logs(study: Path) -> str:
     return "\n\n".join(tables) + (
         f"\n\nRMSE per seed: the mean over the test runs; then mean ± std (n − 1) over seeds "
         f"{_seeds(jobs)}; fit: the fit alone, mean over seeds. From "
-        f"[results/{study.name}](results/{study.name}.md)."
+        f"[results/{study.name}](../results/{study.name}.md)."
     )
 
 
@@ -287,8 +288,8 @@ Block = tuple[str, Callable[[Path], str], str]
 BLOCKS: dict[str, Block] = {
     "headline": ("lane_change_paper", headline, "README.md"),
     "main job": ("main_job", main_job, "README.md"),
-    "main job output": ("main_job", main_job_output, "README.md"),
-    "logs": ("ddk_carsim", logs, "docs/data.md"),
+    "main job output": ("main_job", main_job_output, "docs/guide/main_job.md"),
+    "logs": ("ddk_carsim", logs, "docs/findings/authors_carsim.md"),
 }
 
 

@@ -11,7 +11,8 @@ committed table differs from its data, so a hand-copied number cannot drift.
     python -m harness.report.studies            # re-render every study and the README's headline
     python -m harness.report.studies ddk_carsim # one
 
-The README's result tables, and docs/data.md's of the driving logs, are generated from studies
+The README's result tables, and docs/findings/authors_carsim.md's of the driving logs, are
+generated from studies
 too (``headline.py``): rewritten here after the studies, checked by the same test.
 """
 
