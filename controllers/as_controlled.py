@@ -4,7 +4,7 @@ A learner's ``predict`` may read its lifted state out another way than DE-MPC do
 predicts through its decoder network, while DE-MPC's prediction matrices read x = C z. The two
 can disagree on what matters most to a controller: on the main job's data, seed 1's Deep EDMD
 has the pedal's effect on speed right through its decoder and reversed through C z, so DE-MPC
-braked to speed up (docs/findings/lane_change.md. :class:`AsControlled` wraps a
+braked to speed up (docs/findings/lane_change.md). :class:`AsControlled` wraps a
 model so that any open-loop check (the step responses) sees what the controller will see.
 """
 

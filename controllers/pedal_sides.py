@@ -6,7 +6,7 @@ EDMD) has the throttle and the brake wrong in opposite directions: on ``data=def
 more (3 seeds). A QP on such a model shaves a 0.1 m/s overshoot with the brake, which bites
 several times harder than planned, and the throttle catches it: the main controller changed
 between throttle and brake 8 times in the 7 s of a constant-speed lane change
-(docs/findings/smooth_driving.md.
+(docs/findings/smooth_driving.md).
 
 A driver lifts off before braking. :class:`PedalSides` keeps the plan on the side the pedal is
 on (throttle and coasting, or brake and releasing): the pedal may go back to released, never

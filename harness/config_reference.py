@@ -44,7 +44,7 @@ GROUPS: dict[str, str] = {
 }
 # Groups chosen as a whole: their files are shown as written (they override other groups' keys).
 GLOBAL_GROUPS = ("experiment",)
-_FIELD = re.compile(r"^    (?P<name>[a-z_]\w*): [^=]+?(?P<rest>( = .*)?)$")
+_FIELD = re.compile(r"^    (?P<name>[A-Za-z_]\w*): [^=]+?(?P<rest>( = .*)?)$")
 _KEY = re.compile(r"^(?P<indent> *)(?P<key>[A-Za-z_][\w.]*|'[^']*'|\"[^\"]*\"):(?P<rest>.*)$")
 
 
