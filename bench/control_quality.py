@@ -16,7 +16,8 @@ and ``tracking…quality``: steering reversals per minute, throttle-brake change
 per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
 each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
 at 80 km/h, the plant against each fitted model (the models of the arms).
-The findings of docs/findings/smooth_driving.md ran on this. Run arms two at a time on two cores (one thread each).
+The findings of docs/findings/smooth_driving.md ran on this. Run arms two at a time on two
+cores (one thread each).
 """
 
 from __future__ import annotations
