@@ -82,7 +82,7 @@ def _yaml(text: str) -> Any:
 
 def _fitted(cfg: Any, pipeline: Any, dataset: Any, learner: str, seed: int) -> Any:
     """The learner fitted on the dataset's training drives, once per (learner, seed, data)."""
-    from learners.base import load
+    from learners.model_file import load
 
     path = MODELS / f"{learner}_seed{seed}_{dataset.key}.pt"
     if path.exists():
@@ -199,7 +199,7 @@ def pedal_slopes(learner: str, seeds: Sequence[int], speed_mps: float = 22.2) ->
     """What the pedal does at ``speed_mps`` straight ahead, the plant against each fitted model:
     the mean longitudinal acceleration (m/s²) over 0.2-0.5 s of a pedal held from rest-rolling."""
     from harness.plant import Sedan
-    from learners.base import load
+    from learners.model_file import load
 
     lines = [
         f"| model | {' | '.join(f'{p:+g}' for p in PEDALS)} |",

@@ -90,7 +90,7 @@ def loop_worker(model_path: str, threads: int) -> dict:
     from harness.core.threads import use_threads
     from harness.evaluation.tracking import track
     from harness.recorder import Recorder
-    from learners.base import load
+    from learners.model_file import load
 
     use_threads(threads)
     dataset = _dataset()

@@ -139,14 +139,12 @@ class DEMPCConfig:
     max_iter: int = 100  # PIQP iterations: the time limit of one solve
     active_set: bool = True  # hot-start from the last step's active set before PIQP
     # The active-set solver tried before PIQP: DAQP (the bounded worst case:
-    # docs/findings/real_time.md,
-    # "DAQP") or ours (controllers/condensed_qp.py).
+    # docs/findings/real_time.md, "DAQP") or ours (controllers/condensed_qp.py).
     qp_solver: str = "daqp"
     sqp_iterations: int = 1  # time-varying models (bilinear, nonlinear): linearisations a step
     # Time-varying models (LINEARIZATIONS): frozen at the current point and held over the
     # horizon (Θ from one step response: at 60/50 bilinear EDMD's step 2.4-2.9x faster and
-    # inside the period, the same lane changes passed over 3 seeds, docs/findings/real_time.md);
-    # predicted
+    # inside the period, the same lane changes passed, 3 seeds: findings/real_time.md); predicted
     # (acados's RTI shift: at the states the last step's QP predicted, lifted, no simulation);
     # plan (along the previous plan, rolled out: Np model steps in sequence).
     linearization: str = "frozen"

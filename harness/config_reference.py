@@ -48,6 +48,13 @@ _FIELD = re.compile(r"^    (?P<name>[A-Za-z_]\w*): [^=]+?(?P<rest>( = .*)?)$")
 _KEY = re.compile(r"^(?P<indent> *)(?P<key>[A-Za-z_][\w.]*|'[^']*'|\"[^\"]*\"):(?P<rest>.*)$")
 
 
+def _yaml(group: str, preset: str) -> DictConfig:
+    """``conf/<group>/<preset>.yaml`` as written (not composed)."""
+    node = OmegaConf.load(CONF_DIR / group / f"{preset}.yaml")
+    assert isinstance(node, DictConfig), f"conf/{group}/{preset}.yaml is not a mapping"
+    return node
+
+
 def _comment(text: str) -> str:
     """The text after a YAML comment's ``#``, outside quotes; empty if none."""
     quote = ""
@@ -126,7 +133,7 @@ def _composed(group: str, preset: str) -> dict[str, Any]:
     from hydra import compose
 
     if group not in _defaults():
-        node = OmegaConf.load(CONF_DIR / group / f"{preset}.yaml")
+        node = _yaml(group, preset)
         node.pop("defaults", None)
         return dict(_flatten(node))
     return dict(_flatten(compose(config_name="config", overrides=[f"{group}={preset}"])[group]))
@@ -137,7 +144,7 @@ def _chain(group: str, preset: str) -> list[Path]:
     nearest first: where a key's comment is looked for."""
     path = CONF_DIR / group / f"{preset}.yaml"
     files = [path]
-    for entry in OmegaConf.load(path).get("defaults", []):
+    for entry in _yaml(group, preset).get("defaults", []):
         if isinstance(entry, str) and (CONF_DIR / group / f"{entry}.yaml").exists():
             files += _chain(group, entry)
     return files
@@ -192,7 +199,7 @@ def _schemas() -> dict[str, type]:
 def _settings_class(group: str, preset: str) -> type | None:
     """The dataclass a preset is checked against: the schema it composes (itself or through the
     preset it builds on), else its ``_target_`` if that is a dataclass."""
-    node = OmegaConf.load(CONF_DIR / group / f"{preset}.yaml")
+    node = _yaml(group, preset)
     for entry in node.get("defaults", []):
         if isinstance(entry, str) and entry.endswith("_schema"):
             return _schemas().get(entry)
@@ -218,7 +225,7 @@ def _notes(group: str, preset: str) -> dict[str, str]:
 
 def _defaults() -> dict[str, str]:
     chosen: dict[str, str] = {}
-    for entry in OmegaConf.load(CONF_DIR / "config.yaml").defaults:
+    for entry in _yaml("", "config").defaults:
         if isinstance(entry, DictConfig):
             chosen.update({str(k): str(v) for k, v in entry.items()})
     return chosen

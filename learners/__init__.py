@@ -14,11 +14,12 @@ May import ``harness.core`` only (contracts, episodes, limits, files): a learner
 without the simulator or the recorder.
 """
 
-from learners.base import KoopmanLearner, Learner, load
+from learners.base import KoopmanLearner, Learner
 from learners.deep_edmd import DeepEDMD
 from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF
 from learners.dnn import DNN
 from learners.edmd import EDMD
+from learners.model_file import load
 
 __all__ = [
     "DNN",

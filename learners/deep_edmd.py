@@ -402,9 +402,8 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             lifted training data (the paper's optional last step).
         refit_inputs_lstsq: After training (and at every validation), replace B alone by the
             least-squares fit of z_{k+1} - A z_k = B u_k on the lifted training data, with the
-            trained A (ours: the one-step input response DE-MPC and its offset-free estimate
-            rely on; docs/findings/deep_edmd_vx.md, "B by least squares"). Not with
-            refit_koopman_lstsq.
+            trained A (ours: the one-step input response DE-MPC and its offset-free estimate rely
+            on; docs/findings/deep_edmd_vx.md, "B by least squares"); not with the A, B refit.
         loss_scales: Weigh each state's squared error in L_ox, L_xx in units of its scale
             (physical units, e.g. [0.2, 0.1, 0.05]; ours). None: the paper's normalized units.
         random_layer: ``enabled``, ``std`` of the extra encoder layer redrawn every step.

@@ -25,7 +25,8 @@ from typing import Any, Self
 import numpy as np
 
 from harness.core.checks import choice, integer, positive
-from learners.base import Dim, Shape, package_class
+from learners.base import Dim, Shape
+from learners.model_file import package_class
 
 __all__ = ["ACTIVATIONS", "Dictionary", "RandomFeatures", "ThinPlateRBF", "dictionary_from"]
 
@@ -104,7 +105,8 @@ def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
     """A fresh, unfitted dictionary like ``value``: a built one (its copy, so that two learners
     never share drawn arrays), its ``hyperparameters`` (a model file) or None (thin-plate RBFs).
 
-    Only classes under ``learners`` are built, as :func:`learners.base.load` does for learners.
+    Only classes under ``learners`` are built, as :func:`learners.model_file.load` does for
+    learners.
     """
     if value is None:
         return ThinPlateRBF()

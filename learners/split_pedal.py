@@ -35,8 +35,8 @@ from learners.base import (
     Learner,
     Shape,
     check_rollout_args,
-    learner_class,
 )
+from learners.model_file import learner_class
 
 __all__ = ["SplitPedal", "pedal_column", "split_inputs", "split_normalizer", "split_pedal"]
 

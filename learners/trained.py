@@ -16,7 +16,6 @@ from harness.core.episode import Episode, MinMaxNormalizer
 from learners import training as loop
 from learners.base import (
     INPUT_DIM,
-    RUN_SETTINGS,
     STATE_DIM,
     Dim,
     Learner,
@@ -24,6 +23,7 @@ from learners.base import (
     check_fit_data,
     check_rollout_args,
 )
+from learners.model_file import RUN_SETTINGS
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
 from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, block
 from learners.windows import WindowData

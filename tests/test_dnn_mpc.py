@@ -19,7 +19,7 @@ from harness.evaluation.tracking import track
 from harness.recorder import Recorder
 from harness.tasks.pipeline import _not_lifted_linear
 from learners import DNN
-from learners.base import load as load_learner
+from learners.model_file import load as load_learner
 from learners.nets import Dense, NumpyMLP, mlp_apply
 from tests.toy_models import OwnModelPlant
 from tests.toydata import drive_episodes

@@ -153,6 +153,14 @@ ALLOWED: dict[str, set[str]] = {
         "harness.tasks",
         "controllers",
     },
+    # The config reference page: reads conf/ and the schemas' dataclasses (docs tooling).
+    "harness.config_reference": {
+        "harness.core",
+        "harness.config",
+        "harness.data",
+        "harness.tasks",
+        "controllers",
+    },
     "harness.tasks": {
         "harness.core",
         "harness.plant",

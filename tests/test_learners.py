@@ -24,10 +24,10 @@ from learners import (
     RandomFeatures,
     ThinPlateRBF,
 )
-from learners.base import FORMAT_VERSION
 from learners.bilinear import BilinearEDMD
 from learners.bilinear_deep_edmd import BilinearDeepEDMD
 from learners.input_edmd import InputEDMD
+from learners.model_file import FORMAT_VERSION
 from learners.single_track import SingleTrack
 from learners.trained import TrainedLearner
 from tests.helpers import learner_config
@@ -527,7 +527,7 @@ def test_a_model_file_records_what_it_was_trained_on_and_old_files_still_load(
 
 
 def test_a_long_reason_is_cut_at_a_word_never_inside_one() -> None:
-    from learners.base import _first_words
+    from learners.model_file import _first_words
 
     error = ValueError(
         "Weights only load failed. In PyTorch 2.6, we changed the default value of the "

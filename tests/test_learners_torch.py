@@ -16,10 +16,10 @@ from harness.core.episode import MinMaxNormalizer
 from harness.evaluation import training_report
 from harness.recorder import Recorder
 from learners import DNN, DeepEDMD
-from learners.base import check_same_learner
-from learners.base import load as load_learner
 from learners.deep_edmd import LossWeights, deep_edmd_loss_terms, deep_edmd_step
 from learners.dnn import DNNLossWeights, dnn_loss_terms, dnn_step
+from learners.model_file import check_same_learner
+from learners.model_file import load as load_learner
 from learners.nets import Dense, mlp_apply
 from learners.trained import TrainedLearner
 from learners.training import History, TrainingConfig, _State

@@ -11,7 +11,7 @@ import pytest
 
 from harness.core.contracts import LinearizableModel
 from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
-from learners.base import load
+from learners.model_file import load
 from learners.single_track import GEOMETRY_BOUNDS_M, InputLayout, SingleTrack
 
 TRUE = {

@@ -132,7 +132,7 @@ def test_data_without_the_pedal_named_is_refused_in_one_line() -> None:
 
 def test_a_model_file_is_the_configured_learner_whatever_its_inner_training_budget() -> None:
     from learners import DeepEDMD
-    from learners.base import check_same_learner
+    from learners.model_file import check_same_learner
 
     def split(**training: float) -> SplitPedal:
         return SplitPedal(DeepEDMD(training={"max_steps": 100, **training}))

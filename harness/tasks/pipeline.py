@@ -69,8 +69,9 @@ from harness.recorder import Recorder
 from harness.references import CourseReference, Reference, ReferencePath
 from harness.references.course import Course, path_metrics, plot_course, record_course
 from harness.tasks import provenance
-from learners.base import Learner, check_inputs, check_same_learner
-from learners.base import load as load_learner
+from learners.base import Learner
+from learners.model_file import check_inputs, check_same_learner
+from learners.model_file import load as load_learner
 from learners.persistence import Persistence
 
 log = logging.getLogger(__name__)
