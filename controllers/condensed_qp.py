@@ -32,7 +32,7 @@ Everything that does not depend on (z_t, v_{t-1}, Y_ref) is built once per model
 
      so DAQP's own factorization of the Hessian is trivial (diagonal), and a new P (a
      time-varying model, every step) costs one triangular inverse and the rows G L⁻ᵀ, built
-     from G's structure (:meth:`CondensedQP._build_daqp_rows`), not DAQP's O(rows·n²)
+     from G's structure (``controllers/daqp_solver.py``), not DAQP's O(rows·n²)
      refactorization (``update(H=...)``: 1 ms at 60/50, against 0.3 ms here);
    - ``active_set`` (ours): the QP's dual min_{λ>=0} ½λᵀKλ - rᵀλ with K = GP⁻¹Gᵀ (built once)
      and r = Gx_u - b, by a Lawson-Hanson active-set method started from the rows that were
@@ -48,12 +48,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import daqp
 import numpy as np
 import piqp
 from scipy.linalg import cho_factor, cho_solve
-from scipy.linalg.blas import dtrmv
-from scipy.linalg.lapack import dpotrf, dpotrs, dtrtri, dtrtrs
+from scipy.linalg.lapack import dpotrf, dpotrs, dtrtrs
 
 from controllers.condensing import (
     block_cumulative,
@@ -62,13 +60,12 @@ from controllers.condensing import (
     time_invariant_theta,
     time_varying_theta,
 )
+from controllers.daqp_solver import DAQPSolver
 
 PATHS = ("unconstrained", "active_set", "daqp", "piqp", "failed")
 # The active-set solver tried before PIQP: DAQP (default: the bounded worst case, measured in
 # docs/findings/real_time.md) or ours (Lawson-Hanson on the dual, hot-started).
 QP_SOLVERS = ("daqp", "active_set")
-# DAQP's exit flag for an optimum (1); 2 (soft optimum) cannot happen without soft rows.
-DAQP_OPTIMAL = 1
 # Lifts this small (the three-state models) get their free response as one product with maps
 # built with the model (``free_response_maps``), not a loop over the horizon at every solve.
 SMALL_LIFT = 16
@@ -138,8 +135,7 @@ class CondensedQP:
         self._build_dual()
         self._build_piqp(max_iter)
         self._guess = np.zeros(self.rows, dtype=bool)
-        self._p_factor: np.ndarray | None = None  # DAQP's L, computed when first needed
-        self._daqp_rows_ready = False
+        self._daqp.new_hessian(block=self.P[: self._M, : self._M])  # factored when first needed
         self.reset()
 
     def _configure(
@@ -165,8 +161,6 @@ class CondensedQP:
         self.m = m
         self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
         self.active_set, self.qp_solver = active_set, qp_solver
-        self._daqp: daqp.Model | None = None  # set up at its first solve, warm from then on
-        self._daqp_rows_new = False  # rows built that DAQP has not received yet
         self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
         self.dv_max = np.asarray(dv_max, float)
 
@@ -230,6 +224,7 @@ class CondensedQP:
         held = np.tile(np.eye(m), (Nc, 1))  # row k·m + j picks v_{t-1}[j]
         self._b_shift = np.zeros((self.rows, m))
         self._b_shift[2 * M : 3 * M], self._b_shift[3 * M : 4 * M] = -held, held
+        self._daqp = DAQPSolver(M, m, self.rows, self._inv_rate, self.rho, self.tol)
 
     def _build_dual(self) -> None:
         """The active set's dual operator K = G P⁻¹ Gᵀ and the rows of P⁻¹Gᵀ."""
@@ -299,45 +294,20 @@ class CondensedQP:
     def reset(self) -> None:
         """Forget the previous active set (a new run starts cold)."""
         self._guess[:] = False
-        self._daqp = None
-        if self.active_set and self.qp_solver == "daqp" and self.has_model():
-            self._daqp = self._daqp_cold()
+        self._daqp.reset(build=self.active_set and self.qp_solver == "daqp" and self.has_model())
 
     def prepare_solvers(self) -> None:
         """Build now what the active-set solver would build at its first constrained solve
         (DAQP's rows G L⁻ᵀ, its workspace): the real-time iteration's preparation, before the
         measurement."""
         if self.active_set and self.qp_solver == "daqp":
-            self._ensure_daqp()
-            if self._daqp is None:  # a new QP, or one whose last DAQP solve failed: cold
-                self._daqp = self._daqp_cold()
-            elif self._daqp_rows_new:
-                # DAQP takes the new rows now (its LDP form, its working set refactored: 0.2-0.3
-                # ms at 60/50), so that the feedback phase only updates f and b.
-                self._daqp.update(A=self._daqp_rows)
-                self._daqp_rows_new = False
+            self._daqp.prepare()
 
     def has_model(self) -> bool:
         """Whether a model's matrices are set: :meth:`predict` needs them, and a time-varying
         QP's placeholder P (none before its first preparation succeeds) is not worth DAQP's
         workspace, since every Θ replaces its rows."""
         return True
-
-    def _daqp_cold(self) -> daqp.Model | None:
-        """A DAQP workspace with placeholder f = 0, b = 1 (y = 0 feasible): every solve updates
-        both, so building it before the first measurement costs the feedback nothing."""
-        return self._daqp_setup(np.zeros(self._M + 1), np.ones(self.rows))
-
-    def _daqp_setup(self, f: np.ndarray, b: np.ndarray) -> daqp.Model | None:
-        """A DAQP workspace for this QP's rows, cold (no active row); None if DAQP refuses.
-        :meth:`reset` builds it with placeholder f and b (y = 0 feasible) so that a run's first
-        step does not pay for it (1-3 ms at 60/50): every solve updates f and b."""
-        self._ensure_daqp()
-        model = daqp.Model()
-        model.settings = {"primal_tol": self.tol, "dual_tol": self.tol, "eps_prox": 0.0}
-        flag, _ = model.setup(self._daqp_identity, f, self._daqp_rows, b, self._daqp_lower)
-        self._daqp_rows_new = False
-        return model if flag >= 0 else None
 
     def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
         """x_u = [ΔV; 0], the minimizer of J without constraints."""
@@ -364,7 +334,7 @@ class CondensedQP:
             self._guess[:] = False
             return self._solution(x_u, "unconstrained", 0, "solved")
         if self.active_set and self.qp_solver == "daqp":
-            answer = self._solve_daqp(x_u, b)
+            answer = self._daqp.solve(x_u, b)
             if answer is not None:
                 x, iterations = answer
                 return self._solution(x, "daqp", iterations, "solved")
@@ -381,93 +351,6 @@ class CondensedQP:
             x = np.append(solution.dv.ravel(), solution.slack)
             self._guess = self.residual(x, v_prev) > -10 * self.tol
         return solution
-
-    def _daqp_cost(self, x_u: np.ndarray) -> np.ndarray:
-        """f = L⁻¹c = -Lᵀx_u of DAQP's form (ε's entry 0)."""
-        M = self._M
-        assert self._p_factor is not None  # _ensure_daqp built it
-        f = np.zeros(M + 1)
-        f[:M] = -dtrmv(self._p_factor, x_u[:M], lower=1, trans=1)
-        return f
-
-    def _solve_daqp(self, x_u: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, int] | None:
-        """DAQP on min ½‖y‖² + fᵀy s.t. (G L⁻ᵀ) y <= b (y = Lᵀx, b: :meth:`bounds`),
-        warm-started from its last working set. Returns (x, iterations) at a KKT point to
-        ``tol``, or None (PIQP's turn; the next DAQP solve then starts cold)."""
-        self._ensure_daqp()
-        f = self._daqp_cost(x_u)
-        if self._daqp is None:
-            self._daqp = self._daqp_setup(f, b)
-            if self._daqp is None:
-                return None
-        elif self._daqp_rows_new:
-            self._daqp.update(A=self._daqp_rows, f=f, bupper=b)
-            self._daqp_rows_new = False
-        else:
-            self._daqp.update(f=f, bupper=b)
-        _, _, flag, info = self._daqp.solve()
-        # y from DAQP's multipliers, as ours computes it from its own: stationarity holds by
-        # construction, and the checks below are the rest of the KKT conditions, on the rows
-        # in y (G x - b = G L⁻ᵀ y - b: one product instead of the structured residual).
-        multipliers = np.asarray(info["lam"], dtype=float)
-        y = -f - multipliers @ self._daqp_rows
-        s = self._daqp_rows @ y - b
-        active = multipliers > 0
-        # Written so that a NaN anywhere fails: every comparison with NaN is False.
-        if not (
-            flag == DAQP_OPTIMAL
-            and s.max() <= self.tol
-            and multipliers.min() >= 0
-            and np.abs(s[active]).max(initial=0.0) <= self.tol
-        ):
-            self._daqp = None  # its working set is suspect: the next solve starts cold
-            return None
-        return self._daqp_primal(y), int(info["iterations"])
-
-    def _daqp_primal(self, y: np.ndarray) -> np.ndarray:
-        """x = L⁻ᵀ y (one triangular solve; ε's row of L is √(2ρ))."""
-        M, factor = self._M, self._p_factor
-        x = np.empty(M + 1)
-        x[:M] = dtrtrs(factor, y[:M], lower=1, trans=1)[0]
-        x[M] = y[M] / np.sqrt(2 * self.rho)
-        return x
-
-    def _ensure_daqp(self) -> None:
-        """L (P = LLᵀ) and DAQP's rows G L⁻ᵀ are current (built once here: P never changes)."""
-        if self._daqp_rows_ready:
-            return
-        M = self._M
-        if self._p_factor is None:
-            factor, info = dpotrf(self.P[:M, :M], lower=1)
-            if info != 0:
-                raise np.linalg.LinAlgError(f"QP Hessian not positive definite ({info})")
-            self._p_factor = factor
-        self._daqp_rows = self._build_daqp_rows(self._p_factor)
-        self._daqp_identity = np.eye(M + 1)
-        self._daqp_lower = np.full(self.rows, -np.inf)  # one-sided rows G x <= b
-        self._daqp_rows_new = True
-        self._daqp_rows_ready = True
-
-    def _build_daqp_rows(self, factor: np.ndarray) -> np.ndarray:
-        """G L⁻ᵀ from the structure of G (rows a - b, -a - b, c, -c, -b as in
-        :meth:`TimeVaryingQP._build_dual`): with W = L⁻ᵀ (upper triangular), the rate rows
-        are W's rows scaled by 1/Δv_max, the input rows W's block cumulative sums, and ε's
-        column is 1/√(2ρ): one triangular inverse (M³/3) and O(rows·M), no product with G."""
-        M, m, Nc = self._M, self.m, self.Nc
-        inverse, info = dtrtri(factor, lower=1)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"QP Hessian factor singular ({info})")
-        W = np.tril(inverse).T  # L⁻ᵀ; dtrtri leaves the upper triangle as it found it
-        rate = self._inv_rate[:, None] * W
-        cumulative = W.reshape(Nc, m, M).cumsum(axis=0).reshape(M, M)
-        slack = 1.0 / np.sqrt(2 * self.rho)
-        rows = np.zeros((self.rows, M + 1))
-        rows[:M, :M], rows[:M, M] = rate, -slack
-        rows[M : 2 * M, :M], rows[M : 2 * M, M] = -rate, -slack
-        rows[2 * M : 3 * M, :M] = cumulative
-        rows[3 * M : 4 * M, :M] = -cumulative
-        rows[4 * M, M] = -slack
-        return rows
 
     def _ensure_dual(self) -> None:
         """K and P⁻¹Gᵀ exist before the active set runs (built once here: P never changes)."""
@@ -672,8 +555,7 @@ class TimeVaryingQP(CondensedQP):
         self._build_piqp(max_iter, hessian=False)
         self._piqp.settings.preconditioner_reuse_on_update = False  # P changes every step
         self._guess = np.zeros(self.rows, dtype=bool)
-        self._p_factor = None  # the factor of P's first M rows, with each new P
-        self._daqp_rows_ready = False
+        self._theta_set = False  # no Θ yet: P is a placeholder, not worth DAQP's workspace
         self._A = np.zeros((Np, self.N, self.N))
         self._B = np.zeros((Np, self.N, self.m))
         self._d = np.zeros((Np, self.N))
@@ -736,7 +618,7 @@ class TimeVaryingQP(CondensedQP):
         return theta
 
     def has_model(self) -> bool:
-        return self._p_factor is not None  # set with the first Θ (set_model, ...)
+        return self._theta_set  # set with the first Θ (set_model, ...)
 
     def set_disturbance(self, w: np.ndarray | None) -> None:
         """A constant w (N,) added to every step of the model set last (z⁺ = A_k z + B_k v +
@@ -782,10 +664,10 @@ class TimeVaryingQP(CondensedQP):
         if info != 0:  # R > 0 makes the block definite; only a non-finite model gets here
             raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
-        self._p_factor = factor  # DAQP's L
+        self._daqp.new_hessian(factor=factor)  # its rows G L⁻ᵀ built when first needed
+        self._theta_set = True
         self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
         self._dual_ready = False
-        self._daqp_rows_ready = False  # DAQP's rows G L⁻ᵀ, likewise
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
         """(n Np,) outputs of the step's model with the input held at v_prev (the given one

@@ -19,7 +19,7 @@ from controllers import (
     DEMPCConfig,
     QPSolution,
     check_controller_config,
-    condensed_qp,
+    daqp_solver,
 )
 from controllers.condensed_qp import PATHS, QP_SOLVERS
 from controllers.de_mpc import MAX_HORIZON_S
@@ -229,7 +229,7 @@ class BrokenDAQP:
 def test_a_daqp_failure_or_a_wrong_answer_falls_back_to_piqp(monkeypatch, flag: int) -> None:
     model = linear_model()
     z, v_prev, y_ref = problem(model, np.array([0.9, 0.8, 0.2]))
-    monkeypatch.setattr(condensed_qp.daqp, "Model", BrokenDAQP(flag))
+    monkeypatch.setattr(daqp_solver.daqp, "Model", BrokenDAQP(flag))
     qp = make_qp(model)
     solution = qp.solve(z, v_prev, y_ref)
     assert solution.ok and solution.path == "piqp"
