@@ -51,8 +51,9 @@ from dataclasses import dataclass
 import numpy as np
 import piqp
 from scipy.linalg import cho_factor, cho_solve
-from scipy.linalg.lapack import dpotrf, dpotrs, dtrtrs
+from scipy.linalg.lapack import dpotrf, dpotrs
 
+from controllers.active_set import HotActiveSet, dense_dual, structured_dual
 from controllers.condensing import (
     block_cumulative,
     block_diagonal,
@@ -134,7 +135,6 @@ class CondensedQP:
         self._build_constraints()
         self._build_dual()
         self._build_piqp(max_iter)
-        self._guess = np.zeros(self.rows, dtype=bool)
         self._daqp.new_hessian(block=self.P[: self._M, : self._M])  # factored when first needed
         self.reset()
 
@@ -225,16 +225,11 @@ class CondensedQP:
         self._b_shift = np.zeros((self.rows, m))
         self._b_shift[2 * M : 3 * M], self._b_shift[3 * M : 4 * M] = -held, held
         self._daqp = DAQPSolver(M, m, self.rows, self._inv_rate, self.rho, self.tol)
+        self._active = HotActiveSet(self.rows, self.tol, self.active_set_max_iter)
 
     def _build_dual(self) -> None:
-        """The active set's dual operator K = G P⁻¹ Gᵀ and the rows of P⁻¹Gᵀ."""
-        G, M = self.G, self._M
-        p_inv = cho_solve(cho_factor(self.P), np.eye(M + 1))
-        self._Zt = np.ascontiguousarray((p_inv @ G.T).T)  # rows of P⁻¹Gᵀ, one per constraint
-        self._K = np.ascontiguousarray(G @ p_inv @ G.T)
-        # A whisper of regularization keeps K_WW factorable when active rows are dependent
-        # (more rows than unknowns); the result is checked against tol all the same.
-        self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
+        """The active set's dual operator K = G P⁻¹ Gᵀ and the rows of P⁻¹Gᵀ (P never changes)."""
+        self._active.set_dual(*dense_dual(self.G, self.P))
 
     def _build_piqp(self, max_iter: int, hessian: bool = True) -> None:
         """The same QP in x_V = [V; ε] with ΔV = D V - E v_{t-1}: V bounds become box bounds
@@ -293,7 +288,7 @@ class CondensedQP:
 
     def reset(self) -> None:
         """Forget the previous active set (a new run starts cold)."""
-        self._guess[:] = False
+        self._active.guess[:] = False
         self._daqp.reset(build=self.active_set and self.qp_solver == "daqp" and self.has_model())
 
     def prepare_solvers(self) -> None:
@@ -331,7 +326,7 @@ class CondensedQP:
         b = self.bounds(v_prev)
         r = self.G @ x_u - b  # the residual, with b kept for DAQP
         if not (r > self.tol).any():
-            self._guess[:] = False
+            self._active.guess[:] = False
             return self._solution(x_u, "unconstrained", 0, "solved")
         if self.active_set and self.qp_solver == "daqp":
             answer = self._daqp.solve(x_u, b)
@@ -340,16 +335,16 @@ class CondensedQP:
                 return self._solution(x, "daqp", iterations, "solved")
         elif self.active_set:
             self._ensure_dual()
-            found = self._hot_active_set(x_u, r, v_prev)
+            found = self._active.solve(x_u, r, lambda x: self.residual(x, v_prev))
             if found is not None:
                 x, rows, iterations = found
-                self._guess[:] = False
-                self._guess[rows] = True
+                self._active.guess[:] = False
+                self._active.guess[rows] = True
                 return self._solution(x, "active_set", iterations, "solved")
         solution = self.solve_piqp(z, v_prev, y_ref)
         if solution.ok:
             x = np.append(solution.dv.ravel(), solution.slack)
-            self._guess = self.residual(x, v_prev) > -10 * self.tol
+            self._active.guess = self.residual(x, v_prev) > -10 * self.tol
         return solution
 
     def _ensure_dual(self) -> None:
@@ -361,85 +356,6 @@ class CondensedQP:
     def _solution(self, x: np.ndarray, path: str, iterations: int, status: str) -> QPSolution:
         M = self.m * self.Nc
         return QPSolution(x[:M].reshape(self.Nc, self.m), float(x[M]), path, iterations, status)
-
-    def _hot_active_set(
-        self, x_u: np.ndarray, r: np.ndarray, v_prev: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, int] | None:
-        """Lawson-Hanson on the dual min_{λ>=0} ½λᵀKλ - rᵀλ, started from the last active set.
-
-        Rows enter one at a time (the most violated; the factor of K_WW grows by one row) and
-        leave when their multiplier reaches zero (refactored). Returns (x, rows, factorizations)
-        at a KKT point, or None when it is degenerate or takes longer than PIQP would.
-        """
-        tol, limit = self.tol, self.active_set_max_iter
-        rows = np.flatnonzero(self._guess)
-        factor, lam, iterations = None, np.zeros(0), 0
-        while rows.size:  # warm start: keep the guessed rows whose multipliers are positive
-            factor = self._factor(rows)
-            iterations += 1
-            if factor is None:
-                rows = rows[:0]
-                break
-            lam = dpotrs(factor, r[rows], lower=1)[0]
-            if (lam > 0).all():
-                break
-            rows = rows[lam > 0]
-        while iterations < limit:
-            x = x_u - lam @ self._Zt[rows] if rows.size else x_u
-            s = self.residual(x, v_prev)
-            if rows.size and np.abs(s[rows]).max() > tol:
-                return None  # the regularization shows: leave it to PIQP
-            s[rows] = -np.inf
-            worst = int(np.argmax(s))
-            if s[worst] <= tol:
-                return x, rows, iterations
-            factor = self._extend(factor, rows, worst)
-            if factor is None:
-                return None
-            rows, current = np.append(rows, worst), np.append(lam, 0.0)
-            while True:  # move towards the block solution, dropping rows whose λ reaches 0
-                iterations += 1
-                mu = dpotrs(factor, r[rows], lower=1)[0]
-                if (mu > 0).all():
-                    lam = mu
-                    break
-                if (mu[-1] <= 0 and current[-1] == 0) or iterations >= limit:
-                    return None  # the most violated row cannot enter: degenerate
-                blocking = mu <= 0
-                ratios = current[blocking] / (current[blocking] - mu[blocking])
-                current = current + ratios.min() * (mu - current)
-                keep = current > 0
-                keep[np.flatnonzero(blocking)[np.argmin(ratios)]] = False
-                rows, current = rows[keep], current[keep]
-                if rows.size == 0:
-                    lam = current
-                    break
-                factor = self._factor(rows)
-                if factor is None:
-                    return None
-        return None
-
-    def _factor(self, rows: np.ndarray) -> np.ndarray | None:
-        """Lower Cholesky factor of K[rows, rows] + δI; None when not numerically definite."""
-        block = self._K.take(rows, 0).take(rows, 1)
-        block.flat[:: rows.size + 1] += self._delta
-        factor, info = dpotrf(block, lower=1)
-        return factor if info == 0 else None
-
-    def _extend(self, factor: np.ndarray | None, rows: np.ndarray, new: int) -> np.ndarray | None:
-        """The factor of K_WW + δI with row ``new`` appended, in O(|W|²)."""
-        k = rows.size
-        diagonal = self._K[new, new] + self._delta
-        extended = np.zeros((k + 1, k + 1), order="F")
-        if k:
-            column = dtrtrs(factor, self._K[new].take(rows), lower=1)[0]
-            diagonal -= column @ column
-            extended[:k, :k] = factor
-            extended[k, :k] = column
-        if diagonal <= self._delta:
-            return None
-        extended[k, k] = np.sqrt(diagonal)
-        return extended
 
     def solve_piqp(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> QPSolution:
         """PIQP alone (dense), in absolute inputs: the reference path and the last resort."""
@@ -554,7 +470,6 @@ class TimeVaryingQP(CondensedQP):
         self._build_constraints()
         self._build_piqp(max_iter, hessian=False)
         self._piqp.settings.preconditioner_reuse_on_update = False  # P changes every step
-        self._guess = np.zeros(self.rows, dtype=bool)
         self._theta_set = False  # no Θ yet: P is a placeholder, not worth DAQP's workspace
         self._A = np.zeros((Np, self.N, self.N))
         self._B = np.zeros((Np, self.N, self.m))
@@ -712,44 +627,8 @@ class TimeVaryingQP(CondensedQP):
             self._dual_ready = True
 
     def _build_dual(self) -> None:
-        """K = G P⁻¹ Gᵀ and the rows of G P⁻¹ from the structure of G, every step it is needed.
-
-        Every row of G is a signed sum of three kinds: a = [diag(1/Δv_max), 0] (rates),
-        b = [0, 1] (slack) and c = [L, 0] (cumulative inputs, L block lower-triangular ones):
-        the rows are a − b, −a − b, c, −c, −b. So G P⁻¹ needs only a P⁻¹ (row scaling), b P⁻¹
-        (a row) and c P⁻¹ (block cumulative sums), and K only their products with a, b, c
-        (column scaling, a column, block cumulative sums): no product with G itself, about
-        10x fewer operations than the dense G P⁻¹ Gᵀ at Nc = 50.
-        """
-        M, m, Nc = self._M, self.m, self.Nc
-        factor, info = dpotrf(self.P, lower=1)
-        p_inv = dpotrs(factor, np.eye(M + 1), lower=1)[0] if info == 0 else np.linalg.inv(self.P)
-        rate = self._inv_rate
-        a_p = rate[:, None] * p_inv[:M]  # (M, M+1)
-        b_p = p_inv[M:]  # (1, M+1)
-        c_p = p_inv[:M].reshape(Nc, m, M + 1).cumsum(axis=0).reshape(M, M + 1)
-        self._Zt = np.ascontiguousarray(np.vstack([a_p - b_p, -a_p - b_p, c_p, -c_p, -b_p]))
-        basis = np.vstack([a_p, b_p, c_p])  # (2M+1, M+1) rows of [a; b; c] P⁻¹
-        with_a = basis[:, :M] * rate  # (·)aᵀ
-        with_b = basis[:, M:]  # (·)bᵀ
-        with_c = basis[:, :M].reshape(-1, Nc, m).cumsum(axis=1).reshape(-1, M)
-        pa, pb, pc = slice(0, M), slice(M, M + 1), slice(M + 1, 2 * M + 1)
-        aa, ab, ac = with_a[pa], with_b[pa], with_c[pa]
-        ba, bb, bc = with_a[pb], with_b[pb], with_c[pb]
-        ca, cb, cc = with_a[pc], with_b[pc], with_c[pc]
-        # Row kinds (a - b, -a - b, c, -c, -b) against the same column kinds.
-        upper = [aa - ab - ba + bb, -aa - ab + ba + bb, ac - bc, -ac + bc, -ab + bb]
-        lower = [-aa + ab - ba + bb, aa + ab + ba + bb, -ac - bc, ac + bc, ab + bb]
-        cumulative = [ca - cb, -ca - cb, cc, -cc, -cb]
-        slack = [-ba + bb, ba + bb, -bc, bc, bb]
-        K = np.empty((self.rows, self.rows))
-        edges = [0, M, 2 * M, 3 * M, 4 * M, 4 * M + 1]
-        kinds = [upper, lower, cumulative, [-x for x in cumulative], slack]
-        for i, row in enumerate(kinds):
-            for j, block in enumerate(row):
-                K[edges[i] : edges[i + 1], edges[j] : edges[j + 1]] = block
-        self._K = K
-        self._delta = 1e-13 * float(np.abs(np.diag(self._K)).max())
+        """K = G P⁻¹ Gᵀ and the rows of G P⁻¹ of this step's P, from the structure of G."""
+        self._active.set_dual(*structured_dual(self.P, self._inv_rate, self.m, self.rows))
 
 
 def _check_piqp_shapes(

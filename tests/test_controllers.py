@@ -154,7 +154,7 @@ def test_the_hot_start_finds_the_same_optimum_from_any_previous_active_set() -> 
     rng = np.random.default_rng(1)
     for _ in range(20):
         z, v_prev, y_ref = problem(model, rng.uniform(0.1, 0.9, 3))
-        qp._guess = rng.random(qp.rows) < 0.1  # any guess, even a poor one
+        qp._active.guess = rng.random(qp.rows) < 0.1  # any guess, even a poor one
         hot, cold = qp.solve(z, v_prev, y_ref), qp.solve_piqp(z, v_prev, y_ref)
         bounds_hold(qp, v_prev, hot.dv, hot.slack)
         assert_optimal(qp, z, v_prev, y_ref, hot)

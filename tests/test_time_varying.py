@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from controllers import DEMPC, DEMPCConfig
+from controllers.active_set import dense_dual, structured_dual
 from controllers.condensed_qp import PREDICTION_NOT_FINITE, CondensedQP, TimeVaryingQP
 from controllers.lifted_linear import LiftedLinearModel
 from controllers.linearization import BilinearLinearization
@@ -280,10 +281,10 @@ def test_the_structured_dual_operator_equals_the_dense_one() -> None:
     A, B, d, C = random_time_varying(4)
     qp = TimeVaryingQP(C, 2, **SETTINGS)
     qp.set_model(A, B, d)
-    qp._ensure_dual()
     p_inv = np.linalg.inv(qp.P)
-    np.testing.assert_allclose(qp._K, qp.G @ p_inv @ qp.G.T, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(qp._Zt, (p_inv @ qp.G.T).T, rtol=1e-9, atol=1e-12)
+    for rows, K in (structured_dual(qp.P, qp._inv_rate, qp.m, qp.rows), dense_dual(qp.G, qp.P)):
+        np.testing.assert_allclose(K, qp.G @ p_inv @ qp.G.T, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(rows, (p_inv @ qp.G.T).T, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize(
