@@ -1,4 +1,4 @@
-"""The condensed DE-MPC quadratic program (paper eq. 19-20) and its three solve paths.
+"""The condensed DE-MPC quadratic program (paper eq. 19-20) and the order of its solve paths.
 
 Decision variables x = [ΔV; ε]: the input increments over the control horizon (Nc·m, in
 normalized input units; ΔV = 0 from Nc to Np) and one slack ε. With y_i = C z_{t+i},
@@ -24,24 +24,16 @@ Everything that does not depend on (z_t, v_{t-1}, Y_ref) is built once per model
 1. the unconstrained optimum x_u = -P⁻¹c (one matrix-vector product); it is the QP's solution
    whenever it satisfies every row;
 2. an active-set solver, started from the last step's active set (``qp_solver``):
-   - ``daqp`` (DAQP: Arnström, Bemporad and Axehill 2022, a dual active-set solver in C,
-     warm-started from its own last working set), given the QP with its Hessian made the
-     identity: with P = LLᵀ and y = Lᵀx,
+   ``daqp`` (DAQP, a dual active-set solver in C, on the QP's least-distance form:
+   ``controllers/daqp_solver.py``) or ``active_set`` (ours, Lawson-Hanson on the dual:
+   ``controllers/active_set.py``). Either answer is accepted only at a KKT point to ``tol``:
+   every row satisfied, multipliers >= 0 and their rows active, i.e. the optimum;
+3. PIQP (dense), on the same problem written in absolute inputs (``controllers/piqp_solver.py``),
+   whenever 2 gives up. PIQP is the solver of record: every answer above is the optimum PIQP
+   finds, to ``tol``.
 
-         min ½‖y‖² + fᵀy  s.t.  (G L⁻ᵀ) y <= b,   f = L⁻¹c = -Lᵀx_u,
-
-     so DAQP's own factorization of the Hessian is trivial (diagonal), and a new P (a
-     time-varying model, every step) costs one triangular inverse and the rows G L⁻ᵀ, built
-     from G's structure (``controllers/daqp_solver.py``), not DAQP's O(rows·n²)
-     refactorization (``update(H=...)``: 1 ms at 60/50, against 0.3 ms here);
-   - ``active_set`` (ours): the QP's dual min_{λ>=0} ½λᵀKλ - rᵀλ with K = GP⁻¹Gᵀ (built once)
-     and r = Gx_u - b, by a Lawson-Hanson active-set method started from the rows that were
-     active one step ago.
-   Either answer is accepted only at a KKT point to ``tol``: every row satisfied, multipliers
-   >= 0 and their rows active (x follows from the multipliers exactly), i.e. the optimum;
-3. PIQP (dense), on the same problem written in absolute inputs V (box bounds for V, the
-   increment rows as general rows: the fastest layout measured), whenever 2 gives up. PIQP is
-   the solver of record: every answer above is the optimum PIQP finds, to ``tol``.
+This module holds the QP itself (its matrices, built once per model or per step for a
+time-varying one) and the order of the paths; each solver keeps its own workspace.
 """
 
 from __future__ import annotations
@@ -49,7 +41,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import piqp
 from scipy.linalg import cho_factor, cho_solve
 from scipy.linalg.lapack import dpotrf, dpotrs
 
@@ -62,6 +53,7 @@ from controllers.condensing import (
     time_varying_theta,
 )
 from controllers.daqp_solver import DAQPSolver
+from controllers.piqp_solver import PIQPSolver
 
 PATHS = ("unconstrained", "active_set", "daqp", "piqp", "failed")
 # The active-set solver tried before PIQP: DAQP (default: the bounded worst case, measured in
@@ -134,6 +126,7 @@ class CondensedQP:
         self._build_cost(Q, R)
         self._build_constraints()
         self._build_dual()
+        self._dual_ready = True  # P never changes
         self._build_piqp(max_iter)
         self._daqp.new_hessian(block=self.P[: self._M, : self._M])  # factored when first needed
         self.reset()
@@ -232,43 +225,18 @@ class CondensedQP:
         self._active.set_dual(*dense_dual(self.G, self.P))
 
     def _build_piqp(self, max_iter: int, hessian: bool = True) -> None:
-        """The same QP in x_V = [V; ε] with ΔV = D V - E v_{t-1}: V bounds become box bounds
-        (``hessian``: P_V now; a time-varying QP builds it when PIQP is asked)."""
-        m, Nc, M = self.m, self.Nc, self.m * self.Nc
-        difference = np.eye(M) - np.eye(M, k=-m)
-        T = np.zeros((M + 1, M + 1))
-        T[:M, :M], T[M, M] = difference, 1.0
-        self._T = T
-        if hessian:
-            self._P_V = np.asfortranarray(T.T @ self.P @ T)
-        rate = self._inv_rate[:, None] * difference
-        ones = np.ones((M, 1))
-        # Upper rows  ΔV/Δv_max - ε <= 1, lower rows  ΔV/Δv_max + ε >= -1 (one-sided each).
-        self._G_V = np.asfortranarray(
-            np.vstack([np.hstack([rate, -ones]), np.hstack([rate, ones])])
+        """PIQP's workspace (``hessian``: P_V now; a time-varying QP builds it when PIQP is
+        first asked after each new P)."""
+        self._piqp = PIQPSolver(
+            self.m,
+            self.Nc,
+            self._inv_rate,
+            self.v_min,
+            self.v_max,
+            self.tol,
+            max_iter,
+            self.P if hessian else None,
         )
-        self._piqp_x_l = np.concatenate([np.tile(self.v_min, Nc), [0.0]])
-        self._piqp_x_u = np.concatenate([np.tile(self.v_max, Nc), [np.inf]])
-        self._piqp_h_l = np.concatenate([np.full(M, -np.inf), -np.ones(M)])
-        self._piqp_h_u = np.concatenate([np.ones(M), np.full(M, np.inf)])
-        solver = piqp.DenseSolver()
-        settings = solver.settings
-        settings.eps_abs = self.tol
-        settings.eps_duality_gap_abs = self.tol
-        settings.max_iter = max_iter
-        settings.preconditioner_reuse_on_update = True  # P and G never change
-        self._piqp = solver
-        self._piqp_ready = False
-        self._piqp_new_hessian = False  # a time-varying model's P changes every step
-        self._piqp_bounds_new = False  # set_input_bounds moved the box since PIQP's last solve
-
-    def _piqp_box(self) -> dict[str, np.ndarray]:
-        """PIQP's input box for ``update`` when set_input_bounds moved it, else nothing (an
-        unchanged problem stays bit for bit the one set up)."""
-        if not self._piqp_bounds_new:
-            return {}
-        self._piqp_bounds_new = False
-        return {"x_l": self._piqp_x_l, "x_u": self._piqp_x_u}
 
     # ---- per step ---------------------------------------------------------------------------
 
@@ -282,9 +250,7 @@ class CondensedQP:
         self.v_min, self.v_max = v_min, v_max
         self._b_upper[2 * M : 3 * M] = np.tile(v_max, self.Nc)
         self._b_upper[3 * M : 4 * M] = -np.tile(v_min, self.Nc)
-        self._piqp_x_l[:M] = np.tile(v_min, self.Nc)
-        self._piqp_x_u[:M] = np.tile(v_max, self.Nc)
-        self._piqp_bounds_new = True
+        self._piqp.set_input_bounds(v_min, v_max)
 
     def reset(self) -> None:
         """Forget the previous active set (a new run starts cold)."""
@@ -334,7 +300,9 @@ class CondensedQP:
                 x, iterations = answer
                 return self._solution(x, "daqp", iterations, "solved")
         elif self.active_set:
-            self._ensure_dual()
+            if not self._dual_ready:  # a time-varying QP's, built when first needed
+                self._build_dual()
+                self._dual_ready = True
             found = self._active.solve(x_u, r, lambda x: self.residual(x, v_prev))
             if found is not None:
                 x, rows, iterations = found
@@ -347,12 +315,6 @@ class CondensedQP:
             self._active.guess = self.residual(x, v_prev) > -10 * self.tol
         return solution
 
-    def _ensure_dual(self) -> None:
-        """K and P⁻¹Gᵀ exist before the active set runs (built once here: P never changes)."""
-
-    def _ensure_piqp_hessian(self) -> None:
-        """PIQP's Hessian P_V = Tᵀ P T is current (built once here: P never changes)."""
-
     def _solution(self, x: np.ndarray, path: str, iterations: int, status: str) -> QPSolution:
         M = self.m * self.Nc
         return QPSolution(x[:M].reshape(self.Nc, self.m), float(x[M]), path, iterations, status)
@@ -363,43 +325,10 @@ class CondensedQP:
         e = self.free_response(z, v_prev) - y_ref
         c = np.zeros(M + 1)
         c[:M] = 2 * self._theta_q @ e
-        # x = T x_V + t0 with t0 = [-E v_prev; 0]: c_V = Tᵀ (c + P t0).
-        c_v = self._T.T @ (c - self.P[:, : self.m] @ v_prev)
-        shift = np.zeros(M)
-        shift[: self.m] = v_prev * self._inv_rate[: self.m]
-        h_l = self._piqp_h_l.copy()
-        h_u = self._piqp_h_u.copy()
-        h_u[:M] += shift
-        h_l[M:] += shift
-        self._ensure_piqp_hessian()
-        solver = self._piqp
-        if not self._piqp_ready:
-            _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
-            self._piqp_bounds_new = False
-            solver.setup(
-                P=self._P_V,
-                c=c_v,
-                G=self._G_V,
-                h_l=h_l,
-                h_u=h_u,
-                x_l=self._piqp_x_l,
-                x_u=self._piqp_x_u,
-            )
-            self._piqp_ready = True
-        elif self._piqp_new_hessian:
-            _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
-            solver.update(P=self._P_V, c=c_v, h_l=h_l, h_u=h_u, **self._piqp_box())
-        else:
-            _check_piqp_shapes(self._P_V, c_v, self._G_V, h_l, h_u, self._piqp_x_l, self._piqp_x_u)
-            solver.update(c=c_v, h_l=h_l, h_u=h_u, **self._piqp_box())
-        self._piqp_new_hessian = False
-        status = solver.solve()
-        iterations = int(solver.result.info.iter)
-        if status != piqp.PIQP_SOLVED:
+        x, iterations, status = self._piqp.solve(c, self.P, v_prev)
+        if x is None:
             zeros = np.zeros((self.Nc, self.m))
             return QPSolution(zeros, 0.0, "failed", iterations, status.name)
-        x = self._T @ solver.result.x
-        x[: self.m] -= v_prev
         return self._solution(x, "piqp", iterations, "solved")
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
@@ -469,14 +398,12 @@ class TimeVaryingQP(CondensedQP):
         self.P = np.asfortranarray(self.P)
         self._build_constraints()
         self._build_piqp(max_iter, hessian=False)
-        self._piqp.settings.preconditioner_reuse_on_update = False  # P changes every step
         self._theta_set = False  # no Θ yet: P is a placeholder, not worth DAQP's workspace
         self._A = np.zeros((Np, self.N, self.N))
         self._B = np.zeros((Np, self.N, self.m))
         self._d = np.zeros((Np, self.N))
         self._gain = np.zeros((M, self.n * Np))
         self._dual_ready = False
-        self._piqp_hessian_ready = False  # P_V, built when PIQP is first asked
         self._free_key: tuple[bytes, bytes] | None = None
         self._free = np.zeros(self.n * Np)
         self._given_free: np.ndarray | None = None
@@ -581,7 +508,7 @@ class TimeVaryingQP(CondensedQP):
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
         self._daqp.new_hessian(factor=factor)  # its rows G L⁻ᵀ built when first needed
         self._theta_set = True
-        self._piqp_hessian_ready = False  # built when PIQP is asked (most steps it is not)
+        self._piqp.new_hessian()  # P_V built when PIQP is asked (most steps it is not)
         self._dual_ready = False
 
     def free_response(self, z: np.ndarray, v_prev: np.ndarray) -> np.ndarray:
@@ -615,42 +542,6 @@ class TimeVaryingQP(CondensedQP):
         y = self.free_response(z, v_prev) + self.theta @ np.ravel(dv)
         return y.reshape(self.Np, self.n)
 
-    def _ensure_piqp_hessian(self) -> None:
-        if not self._piqp_hessian_ready:
-            self._P_V = np.asfortranarray(self._T.T @ self.P @ self._T)
-            self._piqp_new_hessian = True
-            self._piqp_hessian_ready = True
-
-    def _ensure_dual(self) -> None:
-        if not self._dual_ready:
-            self._build_dual()
-            self._dual_ready = True
-
     def _build_dual(self) -> None:
         """K = G P⁻¹ Gᵀ and the rows of G P⁻¹ of this step's P, from the structure of G."""
         self._active.set_dual(*structured_dual(self.P, self._inv_rate, self.m, self.rows))
-
-
-def _check_piqp_shapes(
-    P: np.ndarray,
-    c: np.ndarray,
-    G: np.ndarray,
-    h_l: np.ndarray,
-    h_u: np.ndarray,
-    x_l: np.ndarray,
-    x_u: np.ndarray,
-) -> None:
-    """PIQP 0.7 warns and then segfaults in solve() on mismatched sizes: refuse them here."""
-    n = c.shape[0]
-    expected = {
-        "P": (P.shape, (n, n)),
-        "G": (G.shape, (h_l.shape[0], n)),
-        "h_u": (h_u.shape, h_l.shape),
-        "x_l": (x_l.shape, (n,)),
-        "x_u": (x_u.shape, (n,)),
-    }
-    for name, (got, want) in expected.items():
-        if got != want:
-            raise RuntimeError(f"PIQP problem data {name} has shape {got}, expected {want}")
-    if not (P.flags.f_contiguous and G.flags.f_contiguous):
-        raise RuntimeError("PIQP dense problem matrices must be Fortran-ordered")

@@ -355,15 +355,15 @@ def test_a_failed_solve_falls_back_to_the_previous_plan_and_says_so(monkeypatch,
     plan = info.planned_inputs
 
     class FailingSolver:
-        settings = controller.qp._piqp.settings
-        result = controller.qp._piqp.result
+        settings = controller.qp._piqp._solver.settings
+        result = controller.qp._piqp._solver.result
 
         def update(self, **_: object) -> None: ...
 
         def solve(self) -> piqp.Status:
             return piqp.PIQP_MAX_ITER_REACHED
 
-    monkeypatch.setattr(controller.qp, "_piqp", FailingSolver())
+    monkeypatch.setattr(controller.qp._piqp, "_solver", FailingSolver())
     with caplog.at_level(logging.WARNING):
         u1, info1 = controller.act(x, 0.01)
         u2, info2 = controller.act(x, 0.02)
