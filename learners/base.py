@@ -45,8 +45,8 @@ __all__ = [
 ]
 
 
-class Learner(contracts.Learner, ABC):
-    """The ABC that implements :class:`harness.core.contracts.Learner`: a model of
+class Learner(contracts.RunLearner, ABC):
+    """The ABC that implements :class:`harness.core.contracts.RunLearner`: a model of
     x_{k+1} = f(x_k, u_k) learned from episodes, saved to and loaded from one file format.
 
     Subclasses set ``name`` (their config-group name, used in messages and file names) and

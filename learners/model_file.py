@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import numpy as np
 import torch
 
+from harness.core import contracts
 from harness.core.episode import MinMaxNormalizer
 from harness.core.files import write_atomic
 
@@ -190,7 +191,7 @@ def learner_class(name: str, source: str) -> type[Learner]:
 _LEARNER_CLASS = ("from_hyperparameters", "_state_shapes", "_set_state", "predict")
 
 
-def check_inputs(learner: Learner, inputs: Sequence[str], source: str) -> None:
+def check_inputs(learner: contracts.Learner, inputs: Sequence[str], source: str) -> None:
     """Refuse, in one line, a model fitted on other inputs than ``inputs`` (names in order)."""
     modelled = learner.normalizer_.input_names
     if tuple(inputs) != modelled:
@@ -274,7 +275,9 @@ RUN_SETTINGS = (
 )
 
 
-def check_same_learner(loaded: Learner, configured: Learner, source: str, name: str) -> None:
+def check_same_learner(
+    loaded: contracts.Described, configured: contracts.Described, source: str, name: str
+) -> None:
     """Refuse a loaded model that is not the configured learner ``name`` (one line, both named).
 
     A run reports its model under the configured learner's name (metrics, ``model_<name>.pt``,

@@ -43,6 +43,7 @@ def test_each_contract_has_at_most_five_members_of_its_own(protocol: type) -> No
 
 def test_the_learner_abc_implements_the_contract_and_the_koopman_one_the_lifted_model() -> None:
     assert contracts.Learner in learners.Learner.__mro__
+    assert contracts.RunLearner in learners.Learner.__mro__  # what a run asks of it besides
     assert contracts.LiftedModel in learners.KoopmanLearner.__mro__
     assert learners.KoopmanLearner.dynamics == "linear"
     # Implemented, not restated: the Koopman ABC declares none of the lifted model's members.

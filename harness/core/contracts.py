@@ -2,9 +2,10 @@
 controller reads, a controller, a reference.
 
 Everything that steps a car (data collection, characterization, closed-loop tracking) is typed
-against :class:`Plant`; every learner implements :class:`Learner` (``learners.base.Learner`` is the
-ABC that does); every MPC reads a :class:`Model`, which *declares* its dynamics (``linear``,
-``bilinear`` or ``nonlinear``) rather than being told apart by ``isinstance`` order:
+against :class:`Plant`; every learner implements :class:`Learner`, and what a run asks of it
+besides, :class:`RunLearner` (``learners.base.Learner`` is the ABC that does both); every MPC
+reads a :class:`Model`, which *declares* its dynamics (``linear``, ``bilinear`` or
+``nonlinear``) rather than being told apart by ``isinstance`` order:
 :class:`LiftedModel`, :class:`BilinearModel` and :class:`LinearizableModel` are what each kind
 adds; every rollout drives a :class:`Controller`, whose ``act`` returns the input *and* a
 :class:`StepInfo`, so no caller ever probes a controller for attributes; every tracking target
@@ -22,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -30,7 +31,7 @@ from harness.core.names import INPUT_NAMES as INPUT_NAMES  # re-exported: the co
 from harness.core.names import STATE_NAMES as STATE_NAMES
 
 if TYPE_CHECKING:  # episode.py imports the plant's limits; the contracts import nothing heavy
-    from harness.core.episode import Episode, MinMaxNormalizer
+    from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
     from harness.core.reference_path import ReferencePath
 
 # ``controller.compute_delay``: control periods between a measurement and the plant receiving
@@ -77,7 +78,7 @@ class Learner(Protocol):
 
     def fit(
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer
-    ) -> Learner:
+    ) -> Self:
         """Fit on ``train`` (``validation`` to choose and stop where it applies); return self.
         Data in, fitted attributes out: no files, recordings or figures (the caller's)."""
         ...
@@ -95,6 +96,51 @@ class Learner(Protocol):
     @property
     def fit_summary(self) -> dict[str, Any]:
         """What the fit chose that its settings do not say (``training.fit``), JSON-ready."""
+        ...
+
+
+class Refusals(Protocol):
+    """What a learner refuses before any data is read, each in one line naming the key."""
+
+    def check_size(self, episode_frames: int, n: int = 3, m: int = 2) -> None:
+        """Sizes whose fit on episodes of up to ``episode_frames`` frames (n states, m inputs)
+        cannot fit in this machine's memory."""
+        ...
+
+    def check_inputs(self, channels: Sequence[InputChannel]) -> None:
+        """Inputs (names and declared roles, in order) it cannot be fitted on."""
+        ...
+
+
+class Described(Protocol):
+    """What a run reports of its learner besides its predictions."""
+
+    provenance_: Mapping[str, Any]  # what a loaded model was trained on (empty: fitted here)
+
+    @property
+    def name(self) -> str:
+        """Its config-group name (``learner=<name>``), in messages and file names."""
+        ...
+
+    @property
+    def hyperparameters(self) -> dict[str, Any]:
+        """The settings it was built with, as its config holds them."""
+        ...
+
+    @property
+    def redraws_random_layer(self) -> bool:
+        """Whether each prediction draws a fresh random layer (the paper's robustness test)."""
+        ...
+
+
+class RunLearner(Learner, Refusals, Described, Protocol):
+    """The learner a run drives: fitted (or loaded), checked before any data, and reported
+    (``learners.base.Learner`` implements it)."""
+
+    @property
+    def core(self) -> RunLearner:
+        """The learner that trains and holds the state matrices: itself, or a wrapper's inner
+        one; a run reports its loss curves and spectrum."""
         ...
 
 

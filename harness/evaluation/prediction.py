@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from harness.core.contracts import RunLearner
 from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel
 from harness.output import save_arrays, save_figure
 from harness.recorder import Recorder
-from learners.base import Learner
 
 __all__ = [
     "ENVELOPE_SPANS",
@@ -79,13 +79,13 @@ def rmse(
     }
 
 
-def open_loop(learner: Learner, episode: Episode, **kwargs: Any) -> np.ndarray:
+def open_loop(learner: RunLearner, episode: Episode, **kwargs: Any) -> np.ndarray:
     """(T, 3) prediction of the whole episode from its first state under its inputs."""
     return learner.predict(episode.states[0], episode.inputs[:-1], **kwargs)
 
 
 def windowed(
-    learner: Learner, episode: Episode, window_steps: int
+    learner: RunLearner, episode: Episode, window_steps: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Predictions in windows of ``window_steps``, each started from the measured state.
 
@@ -113,7 +113,7 @@ def windowed(
 
 
 def evaluate(
-    learners: Mapping[str, Learner],
+    learners: Mapping[str, RunLearner],
     episodes: Sequence[Episode],
     *,
     window_steps: int = 41,
@@ -192,7 +192,7 @@ def evaluate(
 
 
 def envelope_exit(
-    learner: Learner,
+    learner: RunLearner,
     predicted: np.ndarray,
     spans: float = ENVELOPE_SPANS,
     measured: np.ndarray | None = None,
@@ -282,7 +282,7 @@ def by_episode(results: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, 
 
 
 def robustness(
-    learners: Learner | Mapping[str, Learner],
+    learners: RunLearner | Mapping[str, RunLearner],
     episodes: Sequence[Episode],
     repeats: int = 100,
     *,
@@ -298,7 +298,7 @@ def robustness(
     "rmse_max" | "rmse_nominal": {state: v}}}}`` and writes ``robustness_<episode>.png`` (mean
     prediction with the 5-95 % band of the repeats shaded, as the paper's figure).
     """
-    if isinstance(learners, Learner):
+    if not isinstance(learners, Mapping):
         learners = {learners.name: learners}
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1 (got {repeats})")
@@ -351,7 +351,7 @@ def _pair(
     return result[0], episode.states, result[1]
 
 
-def _repeated(learner: Learner, episode: Episode, repeats: int) -> np.ndarray:
+def _repeated(learner: RunLearner, episode: Episode, repeats: int) -> np.ndarray:
     """(repeats, T, 3): repeat r with the random layer drawn from seed r."""
     out = []
     for first in range(0, repeats, _REPEAT_CHUNK):

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from harness.core.contracts import RunLearner
 from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.files import write_json_atomic
 from harness.output import save_figure
 from harness.recorder import Recorder
-from learners.base import Learner
 from learners.trained import TrainedLearner
 from learners.training import History
 
@@ -28,14 +28,14 @@ __all__ = ["fit", "plot_loss_curves", "record_loss_curves"]
 
 
 def fit(
-    learner: Learner,
+    learner: RunLearner,
     train: Sequence[Episode],
     validation: Sequence[Episode],
     normalizer: MinMaxNormalizer,
     *,
     recorder: Recorder,
     output_dir: Path,
-) -> Learner:
+) -> RunLearner:
     """Fit ``learner`` (resuming from ``output_dir``); leave its loss curves in the run."""
     trained = learner.core  # a wrapper's inner learner trains and has the curves
     if isinstance(trained, TrainedLearner):

@@ -49,7 +49,14 @@ import numpy as np
 from controllers.as_controlled import AsControlled
 from controllers.config import ControllerFactory, OwnModelFactory
 from harness.core.checks import choice, integer, is_number
-from harness.core.contracts import COMPUTE_DELAYS, INPUT_NAMES, LiftedModel, Model, dynamics_of
+from harness.core.contracts import (
+    COMPUTE_DELAYS,
+    INPUT_NAMES,
+    LiftedModel,
+    Model,
+    RunLearner,
+    dynamics_of,
+)
 from harness.core.episode import SEDAN_INPUTS, Episode
 from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
@@ -69,11 +76,12 @@ from harness.recorder import Recorder
 from harness.references import CourseReference, Reference, ReferencePath
 from harness.references.course import Course, path_metrics, plot_course, record_course
 from harness.tasks import provenance
-from learners.base import Learner
 from learners.model_file import check_inputs, check_same_learner
 from learners.model_file import load as load_learner
 from learners.persistence import Persistence
 
+# A controller's model, or the one line that says why it has none (``tracking…skipped``).
+ModelOrWhy = RunLearner | str
 log = logging.getLogger(__name__)
 
 # prediction.step_response.<case>.as_controlled: the same case through the model as DE-MPC reads it
@@ -92,7 +100,7 @@ class Pipeline:
     def __init__(
         self,
         data: Mapping[str, Any],
-        learner: Learner,
+        learner: RunLearner,
         learner_name: str,
         controller: ControllerFactory | None = None,
         *,
@@ -159,7 +167,7 @@ class Pipeline:
         self.reuse_baseline_runs = reuse_baseline_runs
 
     @staticmethod
-    def _load(path: str | None, learner: Learner, learner_name: str) -> Learner | None:
+    def _load(path: str | None, learner: RunLearner, learner_name: str) -> RunLearner | None:
         """The model file of ``task.model_path``, refused unless it is the configured learner."""
         if not path:
             return None
@@ -251,7 +259,7 @@ class Pipeline:
         this_run: Mapping[str, Any],
         recorder: Recorder,
         output_dir: Path,
-    ) -> tuple[Learner, dict[str, Any]]:
+    ) -> tuple[RunLearner, dict[str, Any]]:
         """Fit (or load ``model_path``), save the model (with what it was trained on: this run,
         or what the loaded file said) and its loss curves."""
         start = time.perf_counter()
@@ -294,7 +302,7 @@ class Pipeline:
 
     def _predict(
         self,
-        learner: Learner,
+        learner: RunLearner,
         episodes: Sequence[Episode],
         recorder: Recorder,
         output_dir: Path,
@@ -326,14 +334,14 @@ class Pipeline:
         section["persistence"] = bars
         return section
 
-    def _controller_models(self, learner: Learner, dataset: Dataset) -> dict[str, Learner | str]:
+    def _controller_models(self, learner: RunLearner, dataset: Dataset) -> dict[str, ModelOrWhy]:
         """The model each controller runs on: the run's learner, or, for a controller that
         brings its own (``OwnModelFactory``: the physics baseline), that model fitted on the
         same training episodes; where that fit refuses the data (a tiny dataset), the reason,
         reported as the controller's ``skipped`` instead of failing the run."""
-        models: dict[str, Learner | str] = {}
+        models: dict[str, ModelOrWhy] = {}
         reason = _not_lifted_linear(learner)
-        fitted: dict[str, Learner | ValueError] = {}  # one fit per distinct own model
+        fitted: dict[str, RunLearner | ValueError] = {}  # one fit per distinct own model
         for name, make in self.controllers.items():
             if not isinstance(make, OwnModelFactory):
                 # A model no MPC reads (persistence) skips its controllers, not the baseline.
@@ -359,8 +367,8 @@ class Pipeline:
 
     def _track(
         self,
-        models: Mapping[str, Learner | str],
-        learner: Learner,
+        models: Mapping[str, ModelOrWhy],
+        learner: RunLearner,
         plant: Sedan,
         episodes: Sequence[Episode],
         recorder: Recorder,
@@ -529,7 +537,7 @@ class Pipeline:
         return metrics, run
 
     def _step_response(
-        self, learner: Learner, plant: Sedan, recorder: Recorder, output_dir: Path
+        self, learner: RunLearner, plant: Sedan, recorder: Recorder, output_dir: Path
     ) -> dict[str, Any]:
         """``prediction.step_response.<case>``: steering and throttle steps from straight
         driving, the model's open-loop prediction against the plant's
@@ -562,7 +570,7 @@ class Pipeline:
         return cases
 
     def _spectrum(
-        self, learner: Learner, dt: float, recorder: Recorder, output_dir: Path
+        self, learner: RunLearner, dt: float, recorder: Recorder, output_dir: Path
     ) -> dict[str, Any]:
         """``spectrum``: the eigenvalues of a Koopman model's state matrices, unstable modes
         named (harness/evaluation/spectrum.py), and ``spectrum.png``. A wrapper's are its
@@ -593,8 +601,8 @@ class Pipeline:
         self,
         name: str,
         plant: Sedan,
-        models: Mapping[str, Learner | str],
-        learner: Learner,
+        models: Mapping[str, ModelOrWhy],
+        learner: RunLearner,
         dataset: Dataset,
         recorder: Recorder,
         output_dir: Path,
@@ -688,7 +696,7 @@ def check_training_data(dataset: Dataset) -> None:
         )
 
 
-def _not_lifted_linear(learner: Learner) -> str | None:
+def _not_lifted_linear(learner: RunLearner) -> str | None:
     """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
     :class:`~harness.core.contracts.Model` of declared dynamics (linear, bilinear or nonlinear)."""
     try:
@@ -742,7 +750,7 @@ def data_done(name: str, metrics: Mapping[str, Any]) -> str:
     return f"{drives} found in the cache at {metrics['path']}"
 
 
-def training_done(learner: Learner, training: Mapping[str, Any]) -> str:
+def training_done(learner: RunLearner, training: Mapping[str, Any]) -> str:
     """The training phase's line: loaded, fitted, or trained for how many batches."""
     if training["source"] != "trained":
         return f"{training['learner']} loaded from {training['source']}"
