@@ -38,6 +38,8 @@ GROUPS: dict[str, str] = {
     "controller": "the run's own controller (`tracking.*` in metrics.json)",
     "disturbance": "the disturbance estimator of an offset-free controller "
     "(`disturbance@controller.disturbance=<name>`)",
+    "horizon": "a part of a controller preset: its horizons (`- /horizon@_here_: long`)",
+    "tracking": "a part of a controller preset: what it tracks (`- /tracking@_here_: path`)",
     "task": "what the run does: the whole pipeline, a characterization, or a collection",
     "reference": "what a controller tracks (`+reference@task.references.<name>=<preset>`)",
     "recorder": "where the run's recording goes",

@@ -229,6 +229,8 @@ BUILDS: dict[str, type | tuple[type, ...]] = {
     "recorder": functools.partial,
     "reference": Reference,
     "disturbance": DisturbanceEstimator,
+    "horizon": DEMPCConfig,
+    "tracking": DEMPCConfig,
 }
 
 
@@ -248,6 +250,9 @@ def test_every_config_file_composes_validates_and_builds(group: str, name: str) 
     elif group == "disturbance":  # an estimator is built where a controller names it
         cfg = compose(f"disturbance@controller.disturbance={name}", as_app=True)
         node = cfg.controller.disturbance
+    elif group in ("horizon", "tracking"):  # a part of a controller preset
+        cfg = compose(f"{group}@controller={name}", as_app=True)
+        node = cfg.controller
     else:
         logs = group == "data" and "logs_schema" in (CONF_DIR / "data" / f"{name}.yaml").read_text()
         cfg = compose(f"{group}={name}", *(["data.path=."] if logs else []), as_app=True)
@@ -257,3 +262,27 @@ def test_every_config_file_composes_validates_and_builds(group: str, name: str) 
     assert isinstance(built, BUILDS[group]), f"{group}={name} built a {type(built).__name__}"
     if group == "plant":
         assert built.reset(seed=0).shape == (3,)
+
+
+def _defaults_depth(group: str, name: str) -> int:
+    """How many levels of presets of ``group`` (and schemas) ``name`` builds on."""
+    node = OmegaConf.load(CONF_DIR / group / f"{name}.yaml")
+    depth = 0
+    for entry in node.get("defaults", []):
+        if isinstance(entry, str) and entry != "_self_":
+            below = CONF_DIR / group / f"{entry}.yaml"
+            depth = max(depth, 1 + (_defaults_depth(group, entry) if below.exists() else 0))
+    return depth
+
+
+@pytest.mark.parametrize("preset", sorted(p.stem for p in (CONF_DIR / "controller").glob("*.yaml")))
+def test_a_controller_preset_is_a_few_lines_built_from_parts(preset: str) -> None:
+    """A preset names the base controller and the parts it adds (``/horizon@_here_: long``,
+    ``/tracking@_here_: path``, ``/disturbance@disturbance: offset_free``) and what it sets
+    itself: at most 10 lines of YAML, at most 2 levels of defaults (preset, base, schema)."""
+    text = (CONF_DIR / "controller" / f"{preset}.yaml").read_text()
+    lines = [
+        line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")
+    ]
+    assert len(lines) <= 10, f"{preset}.yaml has {len(lines)} lines of YAML"
+    assert _defaults_depth("controller", preset) <= 2, f"{preset}.yaml builds on too many levels"
