@@ -131,7 +131,7 @@ def test_the_logs_table_counts_the_runs_that_do_not_beat_persistence(tmp_path: P
     nothing else: jobs without the verdict (before it existed) read as they did."""
     study = copied_study(BLOCKS["logs"][0], tmp_path)
     before = logs(study)
-    job = study / "edmd_s0"
+    job = study / "elm_edmd_s0"  # its jobs predate the verdict
     metrics = json.loads((job / "metrics.json").read_text())
     tests = metrics["data"]["split"]["test"]
     metrics["prediction"][tests[0]]["beats_persistence"] = {
@@ -140,7 +140,7 @@ def test_the_logs_table_counts_the_runs_that_do_not_beat_persistence(tmp_path: P
     (job / "metrics.json").write_text(json.dumps(metrics))
     after = logs(study)
     windows = after.split("**1.5 s windows**")[0]
-    row = next(line for line in windows.splitlines() if line.startswith("| edmd |"))
+    row = next(line for line in windows.splitlines() if line.startswith("| elm_edmd |"))
     runs = 3 * len(tests)  # three seeds
     assert row.count(f"(worse than persistence on 1 of {runs} runs)") == 1
     assert row.split(" | ")[3].endswith(f"(worse than persistence on 1 of {runs} runs)")  # vy
