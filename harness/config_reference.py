@@ -129,12 +129,12 @@ def _value(node: Any) -> str:
     return f"`{text}`".replace("|", "\\|")
 
 
-def _composed(group: str, preset: str) -> dict[str, Any]:
-    """The preset's keys as a run composes them (groups the top level does not choose, such as
-    ``disturbance`` and ``reference``, as their file gives them)."""
+def _composed(group: str, preset: str, chosen_at_top: bool) -> dict[str, Any]:
+    """The preset's keys as a run composes them; a group the top level does not choose
+    (``chosen_at_top`` false: ``disturbance``, ``reference``, the parts) as its file gives them."""
     from hydra import compose
 
-    if group not in _defaults():
+    if not chosen_at_top:
         node = _yaml(group, preset)
         node.pop("defaults", None)
         return dict(_flatten(node))
@@ -246,7 +246,7 @@ def _group_section(group: str, about: str, default: str | None) -> list[str]:
         f"`{group}=<preset>`: {about}. Presets: " + ", ".join(f"`{p}`" for p in presets) + ".",
         "",
     ]
-    base_values = _composed(group, base)
+    base_values = _composed(group, base, default is not None)
     notes = _notes(group, base)
     role = "the default" if base == default else "the first"
     lines += [
@@ -263,7 +263,8 @@ def _group_section(group: str, about: str, default: str | None) -> list[str]:
     for preset in presets:
         if preset == base:
             continue
-        values, notes = _composed(group, preset), _notes(group, preset)
+        values = _composed(group, preset, default is not None)
+        notes = _notes(group, preset)
         changed = [
             (k, v)
             for k, v in values.items()
