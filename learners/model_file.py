@@ -78,7 +78,8 @@ def write(learner: Learner, path: str | Path, provenance: Mapping[str, Any] | No
     _require_fitted(learner)
     state = learner._state()
     n, m = learner.normalizer_.state_min.shape[0], learner.normalizer_.input_min.shape[0]
-    problem = _normalizer_problem(learner.normalizer_.to_dict(), n, m) or array_problem(
+    normalizer = learner.normalizer_.to_dict()
+    problem = _normalizer_problem(normalizer, n, m) or array_problem(
         state, learner._state_shapes(n, m)
     )
     if problem is not None:
@@ -91,9 +92,9 @@ def write(learner: Learner, path: str | Path, provenance: Mapping[str, Any] | No
         "version": FORMAT_VERSION,
         "class": f"{type(learner).__module__}.{type(learner).__qualname__}",
         "hyperparameters": learner.hyperparameters,
-        "state_dim": int(learner.normalizer_.state_min.shape[0]),
-        "input_dim": int(learner.normalizer_.input_min.shape[0]),
-        "normalizer": learner.normalizer_.to_dict(),
+        "state_dim": int(n),
+        "input_dim": int(m),
+        "normalizer": normalizer,
         "tensors": {k: torch.as_tensor(np.asarray(v)) for k, v in state.items()},
         "provenance": dict(learner.provenance_ if provenance is None else provenance),
     }
