@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from harness.core.contracts import INPUT_NAMES
+from harness.core.episode import MinMaxNormalizer
 
 PEDAL = INPUT_NAMES.index("pedal")  # the pedal's column of the inputs (steer_wheel_deg, pedal)
 
@@ -38,6 +39,13 @@ class PedalSides:
         self.margin = float(margin_mps) / float(vx_span)  # normalized
         self.released = float(released)
         self.braking = False
+
+    @classmethod
+    def of(cls, margin_mps: float, normalizer: MinMaxNormalizer) -> PedalSides:
+        """The sides of a model's normalized pedal (its released point and vx range)."""
+        released = float(normalizer.inputs(np.zeros(len(INPUT_NAMES)))[PEDAL])
+        vx_min = float(normalizer.state_min[0])
+        return cls(margin_mps, released, max(float(normalizer.state_max[0]) - vx_min, 1e-9))
 
     def reset(self, v_prev: np.ndarray) -> None:
         """A run starts on the side its first pedal is on (released: the throttle's)."""

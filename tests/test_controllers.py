@@ -271,7 +271,7 @@ def test_the_contracts_hold_for_the_controller_the_model_and_the_test_plant() ->
     assert isinstance(plant, Plant)
     x = plant.reset()
     np.testing.assert_array_equal(x, [20.0, 0.0, 0.0])  # reset returns the state it starts at
-    controller = DEMPC(model)
+    controller = DEMPC(model, DEMPCConfig())
     assert isinstance(controller, Controller)
     controller.reset(feasible_reference(model, steps=30))
     u, info = controller.act(x, 0.0)
@@ -299,14 +299,14 @@ def test_a_model_says_what_it_is_and_is_held_to_it() -> None:
             return model.lift(x)
 
     with pytest.raises(ValueError, match="declares no dynamics") as error:
-        DEMPC(Undeclared())  # type: ignore[arg-type]
+        DEMPC(Undeclared(), DEMPCConfig())  # type: ignore[arg-type]
     assert "\n" not in str(error.value)
 
     class Misdeclared(Undeclared):
         dynamics = "bilinear"  # but it has no H_ nor v0_
 
     with pytest.raises(ValueError, match="declares bilinear dynamics but lacks a member of Bil"):
-        DEMPC(Misdeclared())  # type: ignore[arg-type]
+        DEMPC(Misdeclared(), DEMPCConfig())  # type: ignore[arg-type]
 
     class Unknown(Undeclared):
         dynamics = "quadratic"
@@ -378,7 +378,7 @@ def test_a_failed_solve_falls_back_to_the_previous_plan_and_says_so(monkeypatch,
 def test_track_counts_every_fallback_as_a_solver_failure(monkeypatch) -> None:
     model = linear_model()
     reference = feasible_reference(model, steps=40)
-    controller = DEMPC(model)
+    controller = DEMPC(model, DEMPCConfig())
     solve = controller.qp.solve
     calls = []
 
@@ -501,7 +501,7 @@ def test_a_model_that_breaks_the_contract_is_refused() -> None:
     model = linear_model()
     model.B_ = np.zeros((4, 3))
     with pytest.raises(ValueError, match=r"model\.B_"):
-        DEMPC(model)
+        DEMPC(model, DEMPCConfig())
 
 
 @pytest.mark.parametrize(("name", "horizons"), [("de_mpc", (10, 7)), ("de_mpc_long", (60, 50))])
@@ -522,7 +522,7 @@ def test_the_configs_instantiate_with_the_model_given_at_run_time(name, horizons
 
 
 def test_the_limits_map_onto_the_normalized_inputs() -> None:
-    controller = DEMPC(linear_model())
+    controller = DEMPC(linear_model(), DEMPCConfig())
     span = np.array([900.0, 2.0])  # steering degrees, signed pedal scale
     np.testing.assert_allclose(controller.qp.dv_max * span, [2.25, 0.18 / 9.1])
 

@@ -10,7 +10,7 @@ import pytest
 from hydra.utils import instantiate
 
 import learners
-from controllers import DEMPC, TimeVaryingQP
+from controllers import DEMPC, DEMPCConfig, TimeVaryingQP
 from controllers.linearization import BilinearLinearization
 from harness.core.contracts import BilinearModel, LiftedModel
 from harness.core.episode import Episode, MinMaxNormalizer
@@ -133,11 +133,11 @@ def test_a_bilinear_model_is_never_taken_for_a_lifted_linear_one() -> None:
     assert isinstance(bilinear, LiftedModel) and isinstance(bilinear, BilinearModel)
     assert isinstance(linear, LiftedModel) and not isinstance(linear, BilinearModel)
     assert _not_lifted_linear(bilinear) is None and _not_lifted_linear(linear) is None
-    controller = DEMPC(bilinear)
+    controller = DEMPC(bilinear, DEMPCConfig())
     assert isinstance(controller.qp, TimeVaryingQP)
     assert isinstance(controller.linearization, BilinearLinearization)
     np.testing.assert_array_equal(controller.linearization.H, bilinear.H_)  # H_ is read
-    assert not isinstance(DEMPC(linear).qp, TimeVaryingQP)
+    assert not isinstance(DEMPC(linear, DEMPCConfig()).qp, TimeVaryingQP)
 
 
 def test_the_config_builds_it_and_bad_values_fail_in_one_line() -> None:

@@ -185,7 +185,7 @@ def test_the_path_kinematics_speed_keeps_its_band_until_the_speed_leaves_it() ->
     model = toy_linear_model()
     controller = DEMPCConfig(Np=10, Nc=7, reference="path")(model, 0.01)
     controller.reset(np.full((20, 3), [22.0, 0.0, 0.0]))
-    bands = [controller._speed_band(v) for v in (22.12, 22.13, 22.12, 22.3, 22.13, 22.05)]
+    bands = [controller.path.speed_band(v) for v in (22.12, 22.13, 22.12, 22.3, 22.13, 22.05)]
     assert bands == [22.0, 22.0, 22.0, 22.25, 22.25, 22.0]
     controller.reset(np.full((20, 3), [22.0, 0.0, 0.0]))
-    assert controller._speed_band(22.13) == 22.25  # the nearest band, nothing held
+    assert controller.path.speed_band(22.13) == 22.25  # the nearest band, nothing held

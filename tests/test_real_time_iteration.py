@@ -177,10 +177,10 @@ def test_a_lifted_linear_path_follower_builds_each_speed_bands_qp_before_the_mea
     controller = DEMPCConfig(**settings)(model, 0.01)  # type: ignore[arg-type]
     built: dict[str, list[float]] = {"act": [], "prepare": []}
     phase = ["prepare"]
-    band_qp, act = controller._band_qp, controller.act
+    band_qp, act = controller.path._band_qp, controller.act
 
-    def counting_band_qp(band: float) -> bool:
-        fresh = band_qp(band)
+    def counting_band_qp(band: float, theta: np.ndarray) -> bool:
+        fresh = band_qp(band, theta)
         if fresh:
             built[phase[0]].append(band)
         return fresh
@@ -192,7 +192,7 @@ def test_a_lifted_linear_path_follower_builds_each_speed_bands_qp_before_the_mea
         finally:
             phase[0] = "prepare"
 
-    monkeypatch.setattr(controller, "_band_qp", counting_band_qp)
+    monkeypatch.setattr(controller.path, "_band_qp", counting_band_qp)
     monkeypatch.setattr(controller, "act", feedback)
     plant = ModelPlant(model, x0=reference[0])
     _, run = track(plant, controller, reference, name="x", recorder=Recorder(), path=path)

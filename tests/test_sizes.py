@@ -32,9 +32,6 @@ KNOWN: dict[tuple[str, str], tuple[int, int]] = {
     ("class", "learners/deep_edmd.py:DeepEDMD"): (291, 23),
     ("class", "learners/single_track.py:SingleTrack"): (481, 30),
     ("module", "controllers/condensed_qp.py"): (547, 0),
-    ("class", "controllers/de_mpc.py:DEMPC"): (559, 24),
-    ("function", "controllers/de_mpc.py:act"): (88, 0),
-    ("module", "controllers/de_mpc.py"): (1015, 0),
 }
 
 

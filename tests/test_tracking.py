@@ -252,7 +252,7 @@ def test_a_run_writes_a_rerun_recording(tmp_path: Path) -> None:
     with RerunRecorder(tmp_path / "track.rrd") as recorder:
         track(
             ModelPlant(model, x0=reference[0]),
-            DEMPC(model),
+            DEMPC(model, DEMPCConfig()),
             reference,
             name="short",
             recorder=recorder,
@@ -263,7 +263,13 @@ def test_a_run_writes_a_rerun_recording(tmp_path: Path) -> None:
 def test_a_malformed_reference_is_refused() -> None:
     model = linear_model()
     with pytest.raises(ValueError, match="reference"):
-        track(ModelPlant(model), DEMPC(model), np.zeros((10, 2)), name="x", recorder=Recorder())
+        track(
+            ModelPlant(model),
+            DEMPC(model, DEMPCConfig()),
+            np.zeros((10, 2)),
+            name="x",
+            recorder=Recorder(),
+        )
 
 
 def test_the_predicted_path_integrates_the_predicted_states_from_the_pose() -> None:
