@@ -106,9 +106,10 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
     cfg = _compose(learner, seed, overrides, both)
     plant = instantiate(cfg.plant)
     pipeline = instantiate(cfg.task)
-    pipeline.controllers = {
-        MAIN: next(iter(pipeline.controllers.values())),  # the run's controller comes first
-        BASELINE: pipeline.controllers[BASELINE_CONFIG],
+    loops = pipeline.closed_loops
+    loops.controllers = {
+        MAIN: next(iter(loops.controllers.values())),  # the run's controller comes first
+        BASELINE: loops.controllers[BASELINE_CONFIG],
     }
     data = data_config(cfg.data)
     if not isinstance(data, DataConfig):
@@ -116,11 +117,11 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
     directory, _ = collect_counted(plant, data, DriverKnowledge.of(plant.params), progress=False)
     dataset = load(directory)
     model = _fitted(cfg, pipeline, dataset, learner, seed)
-    models = pipeline._controller_models(model, dataset)
-    pipeline.reuse_baseline_runs = False
+    models = loops.models(model, dataset)
+    loops.reuse_baseline_runs = False
     with tempfile.TemporaryDirectory() as output:
-        tracking = pipeline._track(
-            models, model, plant, dataset.test, Recorder(), Path(output), data_key=dataset.key
+        tracking = loops.track(
+            models, plant, dataset.test, Recorder(), Path(output), data_key=dataset.key
         )
     assert tracking is not None
     rows = []

@@ -17,7 +17,7 @@ from harness.core.contracts import LinearizableModel
 from harness.core.episode import MinMaxNormalizer
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
-from harness.tasks.pipeline import _not_lifted_linear
+from harness.tasks.closed_loops import not_lifted_linear
 from learners import DNN
 from learners.model_file import load as load_learner
 from learners.nets import Dense, NumpyMLP, mlp_apply
@@ -44,9 +44,9 @@ def points(dnn: DNN, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]
 
 
 def test_a_fitted_dnn_is_a_linearizable_model_in_the_normalized_state(dnn: DNN) -> None:
-    assert isinstance(dnn, LinearizableModel) and _not_lifted_linear(dnn) is None
+    assert isinstance(dnn, LinearizableModel) and not_lifted_linear(dnn) is None
     assert not isinstance(DNN(), LinearizableModel)  # unfitted: nothing to linearise
-    assert "not a model a controller reads" in str(_not_lifted_linear(DNN()))
+    assert "not a model a controller reads" in str(not_lifted_linear(DNN()))
     np.testing.assert_array_equal(dnn.C_, np.eye(3))
     x = np.array([12.0, 0.3, -0.1])
     np.testing.assert_allclose(dnn.lift(x), dnn.normalizer_.states(x))

@@ -15,7 +15,7 @@ from controllers.linearization import BilinearLinearization
 from harness.core.contracts import BilinearModel, LiftedModel
 from harness.core.episode import Episode, MinMaxNormalizer
 from harness.evaluation.prediction import open_loop, rmse
-from harness.tasks.pipeline import _not_lifted_linear
+from harness.tasks.closed_loops import not_lifted_linear
 from learners import EDMD, ThinPlateRBF
 from learners.bilinear import BilinearEDMD, bilinear_rollout
 from tests.helpers import compose, synthetic_episodes
@@ -132,7 +132,7 @@ def test_a_bilinear_model_is_never_taken_for_a_lifted_linear_one() -> None:
     linear = EDMD(ThinPlateRBF(num_centers=0)).fit(episodes, [], NORMALIZER)
     assert isinstance(bilinear, LiftedModel) and isinstance(bilinear, BilinearModel)
     assert isinstance(linear, LiftedModel) and not isinstance(linear, BilinearModel)
-    assert _not_lifted_linear(bilinear) is None and _not_lifted_linear(linear) is None
+    assert not_lifted_linear(bilinear) is None and not_lifted_linear(linear) is None
     controller = DEMPC(bilinear, DEMPCConfig())
     assert isinstance(controller.qp, TimeVaryingQP)
     assert isinstance(controller.linearization, BilinearLinearization)

@@ -26,8 +26,6 @@ KNOWN: dict[tuple[str, str], tuple[int, int]] = {
     ("function", "harness/recorder.py:_log_car"): (93, 0),
     ("function", "harness/recorder.py:blueprint"): (106, 0),
     ("function", "harness/tasks/characterize.py:plot"): (116, 0),
-    ("class", "harness/tasks/pipeline.py:Pipeline"): (526, 12),
-    ("function", "harness/tasks/pipeline.py:_track"): (109, 0),
     ("function", "learners/deep_edmd.py:deep_edmd_step"): (93, 0),
     ("class", "learners/deep_edmd.py:DeepEDMD"): (291, 23),
     ("class", "learners/single_track.py:SingleTrack"): (481, 30),

@@ -34,58 +34,44 @@ Beside ``metrics.json`` it leaves the arrays behind its figures (``prediction_<e
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
-import shutil
 import time
-from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, cast
 
-import numpy as np
-
-from controllers.as_controlled import AsControlled
-from controllers.config import ControllerFactory, OwnModelFactory
+from controllers.config import ControllerFactory
 from harness.core.checks import choice, integer, is_number
 from harness.core.contracts import (
     COMPUTE_DELAYS,
     INPUT_NAMES,
-    LiftedModel,
-    Model,
     RunLearner,
-    dynamics_of,
 )
 from harness.core.episode import SEDAN_INPUTS, Episode
 from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
 from harness.data.store import DataConfig, Dataset, drive_again
-from harness.evaluation import reuse, spectrum, step_response, training_report
+from harness.evaluation import training_report
 from harness.evaluation.prediction import (
     ENVELOPE_SPANS,
     beats_persistence,
     evaluate,
     robustness,
 )
-from harness.evaluation.tracking import TrackingTrajectory, load_run, record_run, track
-from harness.output import save_arrays
 from harness.plant import Sedan
 from harness.recorder import Recorder
-from harness.references import CourseReference, Reference, ReferencePath
-from harness.references.course import Course, path_metrics, plot_course, record_course
+from harness.references import Reference
 from harness.tasks import provenance
+from harness.tasks.closed_loops import ClosedLoops, ModelOrWhy
+from harness.tasks.model_checks import spectrum_section, step_responses
 from learners.model_file import check_inputs, check_same_learner
 from learners.model_file import load as load_learner
 from learners.persistence import Persistence
 
-# A controller's model, or the one line that says why it has none (``tracking…skipped``).
-ModelOrWhy = RunLearner | str
 log = logging.getLogger(__name__)
 
-# prediction.step_response.<case>.as_controlled: the same case through the model as DE-MPC reads it
-AS_CONTROLLED = "as_controlled"
 
 # Below about 1 m/s the tyres are in their slip-limited low-speed regime and nothing of the
 # handling the learners are for (cornering, load transfer, drag) shows; every working plant
@@ -119,21 +105,20 @@ class Pipeline:
     ) -> None:
         self.data = data_config(data)
         self.learner, self.learner_name = learner, learner_name
-        self.controllers = {controller_name: controller} if controller is not None else {}
+        controllers = {controller_name: controller} if controller is not None else {}
         for name, make in (extra_controllers or {}).items():
-            if name in self.controllers:  # controller=de_mpc beside the default extra de_mpc
+            if name in controllers:  # controller=de_mpc beside the default extra de_mpc
                 log.info("task.extra_controllers.%s is the run's controller: run once", name)
                 continue
             if not isinstance(make, ControllerFactory):
                 raise ValueError(
                     f"task.extra_controllers.{name} must be a controller config (conf/controller/)"
                 )
-            self.controllers[name] = make
+            controllers[name] = make
         if compute_delay is not None:  # one clock for every controller the run drives
             choice("task.compute_delay", compute_delay, COMPUTE_DELAYS)
-            self.controllers = {
-                name: _with_delay(make, compute_delay, name)
-                for name, make in self.controllers.items()
+            controllers = {
+                name: _with_delay(make, compute_delay, name) for name, make in controllers.items()
             }
         self.other_plants = dict(other_plants or {})
         self.model_path = model_path
@@ -154,7 +139,6 @@ class Pipeline:
         for name, reference in references.items():
             if not isinstance(reference, Reference):
                 raise ValueError(f"task.references.{name} must be a reference config (_target_)")
-        self.references = references
         integer("task.robustness_repeats", robustness_repeats)
         self.robustness_repeats = int(robustness_repeats)
         if not isinstance(logs_from_plant, bool):
@@ -164,7 +148,7 @@ class Pipeline:
             raise ValueError(
                 f"task.reuse_baseline_runs must be true or false (got {reuse_baseline_runs})"
             )
-        self.reuse_baseline_runs = reuse_baseline_runs
+        self.closed_loops = ClosedLoops(controllers, references, learner_name, reuse_baseline_runs)
 
     @staticmethod
     def _load(path: str | None, learner: RunLearner, learner_name: str) -> RunLearner | None:
@@ -189,7 +173,7 @@ class Pipeline:
         if logs and self.logs_from_plant:
             check_logs_drive(plant, dataset, self.data.name)
         if on_plant:
-            data_metrics |= reference_speeds(self.references, plant.dt, dataset)
+            data_metrics |= reference_speeds(self.closed_loops.references, plant.dt, dataset)
         if self.loaded is None:
             if logs:  # sized by the logs once they are read, still before the fit
                 self.learner.check_size(max(len(e) for e in dataset.episodes()))
@@ -206,12 +190,14 @@ class Pipeline:
             drives = len(dataset.test)
             done = [f"{drives} test drive{'s' * (drives != 1)} open loop"]
             if on_plant:
-                prediction["step_response"] = self._step_response(
-                    learner, plant, recorder, output_dir
+                prediction["step_response"] = step_responses(
+                    learner, self.learner_name, plant, recorder, output_dir
                 )
                 done.append("step responses")
             period = dataset.period_s if logs else plant.dt
-            sections["spectrum"] = self._spectrum(learner, period, recorder, output_dir)
+            sections["spectrum"] = spectrum_section(
+                learner, self.learner_name, period, recorder, output_dir
+            )
             if learner.redraws_random_layer:
                 repeated = robustness(
                     {self.learner_name: learner},
@@ -225,9 +211,9 @@ class Pipeline:
             phase.done = ", ".join(done)
         if not on_plant:
             return sections | self._skipped_on_logs(prediction)
-        models = self._controller_models(learner, dataset)
-        tracking = self._track(
-            models, learner, plant, dataset.test, recorder, output_dir, data_key=dataset.key
+        models = self.closed_loops.models(learner, dataset)
+        tracking = self.closed_loops.track(
+            models, plant, dataset.test, recorder, output_dir, data_key=dataset.key
         )
         if tracking is not None:
             sections["tracking"] = tracking
@@ -246,7 +232,7 @@ class Pipeline:
         )
         prediction["step_response"] = {"skipped": why}
         skipped: dict[str, Any] = {}
-        if self.controllers and self.references:
+        if self.closed_loops.controllers and self.closed_loops.references:
             skipped["tracking"] = {"skipped": why}
         if self.other_plants:
             skipped["generalization"] = {"skipped": why}
@@ -334,269 +320,6 @@ class Pipeline:
         section["persistence"] = bars
         return section
 
-    def _controller_models(self, learner: RunLearner, dataset: Dataset) -> dict[str, ModelOrWhy]:
-        """The model each controller runs on: the run's learner, or, for a controller that
-        brings its own (``OwnModelFactory``: the physics baseline), that model fitted on the
-        same training episodes; where that fit refuses the data (a tiny dataset), the reason,
-        reported as the controller's ``skipped`` instead of failing the run."""
-        models: dict[str, ModelOrWhy] = {}
-        reason = _not_lifted_linear(learner)
-        fitted: dict[str, RunLearner | ValueError] = {}  # one fit per distinct own model
-        for name, make in self.controllers.items():
-            if not isinstance(make, OwnModelFactory):
-                # A model no MPC reads (persistence) skips its controllers, not the baseline.
-                models[name] = f"{self.learner_name} {reason}" if reason else learner
-                continue
-            own = make.learner()
-            key = json.dumps([type(own).__name__, own.hyperparameters], sort_keys=True, default=str)
-            if key not in fitted:
-                with Phase(f"identification {own.name}") as phase:
-                    try:
-                        fitted[key] = own.fit(dataset.train, dataset.validation, dataset.normalizer)
-                        phase.done = f"fitted on the training drives, for {name}"
-                    except ValueError as error:
-                        fitted[key] = error
-                        phase.done = f"refused the training drives: {error}"
-            model = fitted[key]
-            if isinstance(model, ValueError):
-                log.warning("%s not tracked: %s", name, model)
-                models[name] = f"{name} could not identify its {own.name} model: {model}"
-            else:
-                models[name] = model
-        return models
-
-    def _track(
-        self,
-        models: Mapping[str, ModelOrWhy],
-        learner: RunLearner,
-        plant: Sedan,
-        episodes: Sequence[Episode],
-        recorder: Recorder,
-        output_dir: Path,
-        prefix: str = "",
-        *,
-        data_key: str,
-    ) -> dict[str, Any] | None:
-        """Every controller on every reference (each built from the test drives ``episodes``);
-        the first controller's run of the first reference is the top level. ``data_key``: the
-        dataset the models were fitted on (a stored baseline run is reused only on the same)."""
-        if not self.controllers or not self.references:
-            return None
-        targets = {
-            name: (reference.label(name, episodes), reference.build(plant.dt, episodes))
-            for name, reference in self.references.items()
-        }
-        courses = {
-            name: reference.course()
-            for name, reference in self.references.items()
-            if isinstance(reference, CourseReference)
-        }
-        centre_lines = {name: course.path() for name, course in courses.items()}
-        paths: dict[str, dict[str, np.ndarray]] = {name: {} for name in courses}
-        by_controller: dict[str, dict[str, Any]] = {}
-        # (reference, model, settings without a path) -> the controller that drove it first;
-        # kept only where a later controller is its twin (a run holds its predicted horizons)
-        twin_keys = {
-            (c, name): _twin_key(name, model, self.controllers[c], centre_lines.get(name))
-            for c, model in models.items()
-            if not isinstance(model, str)
-            for name in targets
-        }
-        twins = Counter(twin_keys.values())
-        driven: dict[tuple[str, int, str], tuple[str, TrackingTrajectory]] = {}
-        for controller_name, make_controller in self.controllers.items():
-            model = models[controller_name]
-            if isinstance(model, str):
-                by_controller[controller_name] = {"skipped": model}
-                continue
-            # The run's learner passed _not_lifted_linear; an own model is linearizable.
-            assert isinstance(model, Model)
-            runs: dict[str, Any] = {}
-            with Phase(f"{prefix}tracking {controller_name}") as phase:
-                for name, (label, reference) in targets.items():
-                    stem = f"tracking_{controller_name}_{name}"
-                    twin = twin_keys[controller_name, name]
-                    rollout = f"{prefix}tracking/{controller_name}/{label}"
-                    if twin in driven:  # the same run, bit for bit: copied, not driven again
-                        twin_name, twin_run = driven[twin]
-                        runs[label] = {
-                            **by_controller[twin_name][label],
-                            "same_run_as": twin_name,
-                        }
-                        for suffix in (".npz", ".png"):
-                            source = output_dir / f"tracking_{twin_name}_{name}{suffix}"
-                            if source.exists():
-                                shutil.copyfile(source, output_dir / f"{stem}{suffix}")
-                        record_run(recorder, rollout, twin_run, plant.dt, 1)
-                        continue
-                    metrics, run = self._drive(
-                        plant,
-                        make_controller,
-                        model,
-                        reference,
-                        rollout=rollout,
-                        recorder=recorder,
-                        figure_path=output_dir / f"{stem}.png",
-                        arrays_path=output_dir / f"{stem}.npz",
-                        tab_priority=2 if name in courses else 1,  # the recording opens on a course
-                        course=courses.get(name),
-                        path=centre_lines.get(name),
-                        data_key=data_key,
-                    )
-                    if twin is not None and twins[twin] > 1:
-                        driven[twin] = (controller_name, run)
-                    if name in courses:
-                        record_course(recorder, rollout, courses[name])
-                        paths[name][controller_name] = run.poses
-                        log.debug(
-                            "%s%s on the %s course: %s",
-                            prefix,
-                            controller_name,
-                            label,
-                            metrics["path"],
-                        )
-                    runs[label] = metrics
-                    log.debug(
-                        "%s%s tracked %s: rmse %s", prefix, controller_name, label, metrics["rmse"]
-                    )
-                phase.done = tracking_done(runs)
-            by_controller[controller_name] = runs
-        for name, course in courses.items():
-            save_arrays(output_dir / f"course_{name}.npz", **course.as_arrays())
-            title = f"{self.learner_name}: {name} (top view)"
-            plot_course(course, paths[name], output_dir / f"course_{name}.png", title=title)
-        first = next(iter(by_controller.values()))
-        if "skipped" in first:
-            return {"skipped": first["skipped"], "controllers": by_controller}
-        return {
-            **next(iter(first.values())),
-            "reference": next(iter(first)),
-            "references": first,
-            "controllers": by_controller,
-        }
-
-    def _drive(
-        self,
-        plant: Sedan,
-        make: ControllerFactory,
-        model: Model,
-        reference: np.ndarray,
-        *,
-        rollout: str,
-        recorder: Recorder,
-        figure_path: Path,
-        arrays_path: Path,
-        tab_priority: int,
-        course: Course | None,
-        path: ReferencePath | None,
-        data_key: str,
-    ) -> tuple[dict[str, Any], TrackingTrajectory]:
-        """One closed loop of ``make``'s controller on ``model``; for a controller with its own
-        model (the physics baseline) in a job that records nothing, the run another job drove
-        with the same code, plant, data and settings (``harness/evaluation/reuse.py``).
-        ``path``: the course's centre line the controller follows (None off a course)."""
-        key = None
-        own = isinstance(make, OwnModelFactory)
-        if own and self.reuse_baseline_runs and type(recorder) is Recorder:
-            parts = {
-                "plant": repr(plant.params),
-                "dt": plant.dt,
-                "data": data_key,
-                "model": [type(model).__name__, getattr(model, "hyperparameters", None)],
-                "controller": repr(make),
-                "course": {k: v.tolist() for k, v in course.as_arrays().items()}
-                if course
-                else None,
-            }
-            key = reuse.run_key(parts, reference)
-            stored = reuse.load(key)
-            if stored is not None:
-                reuse.copy_out(key, arrays_path, figure_path)
-                reused = {"key": key, "driven_in": stored["driven_in"]}
-                return {**stored["metrics"], "reused_from": reused}, load_run(arrays_path)
-        metrics, run = track(
-            plant,
-            make(model, plant.dt),
-            reference,
-            name=rollout,
-            recorder=recorder,
-            figure_path=figure_path,
-            arrays_path=arrays_path,
-            tab_priority=tab_priority,
-            path=path,
-            compute_delay=make.compute_delay,
-        )
-        if course is not None:
-            metrics["path"] = {
-                **path_metrics(course, run.poses, run.states),
-                "reference_speed_mps": float(reference[0, 0]),
-            }
-        if key is not None:
-            driven = {"metrics": metrics, "driven_in": str(arrays_path.parent)}
-            reuse.store(key, driven, arrays_path, figure_path)
-        return metrics, run
-
-    def _step_response(
-        self, learner: RunLearner, plant: Sedan, recorder: Recorder, output_dir: Path
-    ) -> dict[str, Any]:
-        """``prediction.step_response.<case>``: steering and throttle steps from straight
-        driving, the model's open-loop prediction against the plant's
-        (harness/evaluation/step_response.py)."""
-        models: dict[str, step_response.Predictor] = {self.learner_name: learner}
-        # A model a controller reads is also checked as DE-MPC will predict with it, and must
-        # respond to its inputs the plant's way (persistence declares no dynamics: no input
-        # response by design, no controlled view, no warning).
-        views = {self.learner_name: "its predictions"}
-        if dynamics_of(learner) is not None:
-            models[AS_CONTROLLED] = AsControlled(cast(Model, learner))
-            views[AS_CONTROLLED] = "DE-MPC's read-out"
-        results = step_response.evaluate(models, plant, recorder=recorder, output_dir=output_dir)
-        cases = results[self.learner_name]
-        for case, controlled in results.get(AS_CONTROLLED, {}).items():
-            cases[case][AS_CONTROLLED] = controlled
-        for view, label in views.items():
-            for case, values in results[view].items():
-                if AS_CONTROLLED in views and not values["input_sign_agrees"]:
-                    log.warning(
-                        "%s: %s's effect on %s in %s has the wrong sign (or none) in %s: a "
-                        "controller on this model pushes the wrong way (step_response.%s)",
-                        self.learner_name,
-                        values["input"],
-                        values["output"],
-                        case,
-                        label,
-                        case,
-                    )
-        return cases
-
-    def _spectrum(
-        self, learner: RunLearner, dt: float, recorder: Recorder, output_dir: Path
-    ) -> dict[str, Any]:
-        """``spectrum``: the eigenvalues of a Koopman model's state matrices, unstable modes
-        named (harness/evaluation/spectrum.py), and ``spectrum.png``. A wrapper's are its
-        core learner's (the pedal split changes only the inputs)."""
-        learner = learner.core
-        if dynamics_of(learner) not in ("linear", "bilinear"):
-            return {"skipped": f"{self.learner_name} is not a lifted model"}
-        assert isinstance(learner, LiftedModel)
-        metrics, eigenvalues = spectrum.spectrum(learner, dt)
-        spectrum.record_spectrum(recorder, eigenvalues)
-        spectrum.plot_spectrum(eigenvalues, output_dir / "spectrum.png", title=self.learner_name)
-        modes = metrics["unstable_modes"]
-        if modes:
-            fastest = min(modes, key=lambda mode: mode["doubling_time_s"])
-            log.warning(
-                "%s: %d modes outside the unit circle (spectrum.unstable_modes); the fastest, "
-                "|λ| = %.6f, doubles in %.3g s (%s, at %s)",
-                self.learner_name,
-                len(modes),
-                fastest["abs"],
-                fastest["doubling_time_s"],
-                fastest["dominant"],
-                fastest["matrix"],
-            )
-        return metrics
-
     def _generalize(
         self,
         name: str,
@@ -614,8 +337,8 @@ class Pipeline:
         directory.mkdir(parents=True, exist_ok=True)
         prefix = f"generalization/{name}/"
         result = {"prediction": self._predict(learner, episodes, recorder, directory, prefix)}
-        tracking = self._track(
-            models, learner, plant, episodes, recorder, directory, prefix, data_key=dataset.key
+        tracking = self.closed_loops.track(
+            models, plant, episodes, recorder, directory, prefix, data_key=dataset.key
         )
         if tracking is not None:
             result["tracking"] = tracking
@@ -696,16 +419,6 @@ def check_training_data(dataset: Dataset) -> None:
         )
 
 
-def _not_lifted_linear(learner: RunLearner) -> str | None:
-    """Why DE-MPC cannot use ``learner`` (None: it can): the controller reads a
-    :class:`~harness.core.contracts.Model` of declared dynamics (linear, bilinear or nonlinear)."""
-    try:
-        dynamics = dynamics_of(learner)
-    except ValueError as error:  # it declares dynamics it lacks the members of (unfitted)
-        return f"is not a model a controller reads ({error})"
-    return None if dynamics else "is not a model a controller reads (it declares no dynamics)"
-
-
 def check_logs_drive(plant: Sedan, dataset: Dataset, name: str) -> None:
     """Logs said to come from ``plant`` can drive it: the model's period is the plant's control
     period and its inputs are the plant's, by name and in its units.
@@ -763,33 +476,3 @@ def training_done(learner: RunLearner, training: Mapping[str, Any]) -> str:
         before = seconds(training["fit_time_before_resume_s"])
         done += f", resumed from its checkpoint after {before} of training"
     return done
-
-
-def tracking_done(runs: Mapping[str, Mapping[str, Any]]) -> str:
-    """A controller's line: each reference it drove, a course with its verdict."""
-    done = []
-    for label, metrics in runs.items():
-        course = metrics.get("path")
-        line = label
-        if course is not None:
-            verdict = "passed" if course.get("passed") else "FAILED"
-            line += f" {verdict} ({course.get('cones_hit', 0)} cones)"
-        if "same_run_as" in metrics:
-            line += f" [{metrics['same_run_as']}'s run]"
-        if "reused_from" in metrics:
-            line += f" [reused from {metrics['reused_from']['driven_in']}]"
-        done.append(line)
-    return ", ".join(done)
-
-
-def _twin_key(
-    reference: str, model: object, make: ControllerFactory, path: object | None
-) -> tuple[str, int, str] | None:
-    """What makes two controllers' runs of ``reference`` the same run: a reference without a
-    path is driven by a path follower as by its state-tracking twin (``without_path``), so the
-    pipeline drives it once (``experiment=paper``'s ``*_path`` controllers on the test drive).
-    None: no such settings, or a path to follow."""
-    without_path = getattr(make, "without_path", None)
-    if path is not None or without_path is None:
-        return None
-    return reference, id(model), repr(without_path())
