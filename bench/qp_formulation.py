@@ -60,7 +60,7 @@ class Problem:
 def record(model_path: str, horizon: tuple[int, int]) -> tuple[Any, list[Problem]]:
     """The lane change under DE-MPC (states, predicted) and every step's QP (controller, QPs)."""
     from controllers import DEMPCConfig
-    from controllers.condensed_qp import TimeVaryingQP
+    from controllers.time_varying_qp import TimeVaryingQP
     from harness.evaluation.tracking import track
     from harness.plant import Sedan
     from harness.recorder import Recorder

@@ -10,9 +10,10 @@ no simulator, no recorder.
 """
 
 from controllers.bicycle_mpc import BicycleMPCConfig
-from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
+from controllers.condensed_qp import CondensedQP, QPSolution
 from controllers.config import ControllerFactory, OwnModelFactory, check_controller_config
 from controllers.de_mpc import DEMPC, DEMPCConfig
+from controllers.time_varying_qp import TimeVaryingQP
 
 __all__ = [
     "DEMPC",

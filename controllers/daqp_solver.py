@@ -158,7 +158,7 @@ class DAQPSolver:
 
     def _build_rows(self, factor: np.ndarray) -> np.ndarray:
         """G L⁻ᵀ from the structure of G (rows a - b, -a - b, c, -c, -b as in
-        :meth:`controllers.condensed_qp.TimeVaryingQP._build_dual`): with W = L⁻ᵀ (upper
+        :meth:`controllers.time_varying_qp.TimeVaryingQP._build_dual`): with W = L⁻ᵀ (upper
         triangular), the rate rows are W's rows scaled by 1/Δv_max, the input rows W's block
         cumulative sums, and ε's column is 1/√(2ρ): one triangular inverse (M³/3) and
         O(rows·M), no product with G."""

@@ -11,7 +11,7 @@ Both are linear in the model's predicted states for a given v̄, and the curvatu
 known input, so the errors over the horizon are running sums of the model's own prediction
 Y = free + Θ ΔV: whatever the model (lifted-linear, bilinear, linearisable), the path QP's
 prediction is a few cumulative sums of the states QP's, O(Np·Nc·m) a step, and its Hessian is
-built from it (:meth:`~controllers.condensed_qp.TimeVaryingQP.set_prediction_matrix`; the free
+built from it (:meth:`~controllers.time_varying_qp.TimeVaryingQP.set_prediction_matrix`; the free
 response by ``set_free_response``). The outputs per step are (vx, vy, yaw rate) normalized as
 the model's, then e_y and e_ψ; ``controller.Q_path`` weighs them.
 """
@@ -24,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
+from controllers.condensed_qp import CondensedQP, QPSolution
+from controllers.time_varying_qp import TimeVaryingQP
 from harness.core.episode import MinMaxNormalizer
 from harness.core.reference_path import ReferencePath
 

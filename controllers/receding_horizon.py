@@ -27,12 +27,13 @@ import numpy as np
 
 from controllers.blas import single_threaded
 from controllers.clock import Clock, Plan, Planned
-from controllers.condensed_qp import CondensedQP, QPSolution, TimeVaryingQP
+from controllers.condensed_qp import CondensedQP, QPSolution
 from controllers.disturbance import DisturbanceEstimator
 from controllers.linearization import check_lifted_model, check_linearizable, linearization_of
 from controllers.path_following import PathTracking, Where
 from controllers.pedal_sides import PedalSides
 from controllers.time_varying import LinearisedStep, Prepared, linearised_step
+from controllers.time_varying_qp import TimeVaryingQP
 from harness.core.contracts import (
     COMPUTE_DELAYS,
     LiftedModel,

@@ -17,10 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from controllers.clock import held
-from controllers.condensed_qp import QPSolution, TimeVaryingQP
+from controllers.condensed_qp import QPSolution
 from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import PathTracking, Where
 from controllers.pedal_sides import PEDAL
+from controllers.time_varying_qp import TimeVaryingQP
 from harness.core.contracts import LinearizableModel
 from harness.core.episode import MinMaxNormalizer
 

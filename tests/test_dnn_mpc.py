@@ -12,7 +12,7 @@ import torch
 from torch.func import jacrev, vmap
 
 from controllers import DEMPC, DEMPCConfig
-from controllers.condensed_qp import TimeVaryingQP
+from controllers.time_varying_qp import TimeVaryingQP
 from harness.core.contracts import LinearizableModel
 from harness.core.episode import MinMaxNormalizer
 from harness.evaluation.tracking import track

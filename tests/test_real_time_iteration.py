@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 
 from controllers import DEMPCConfig
-from controllers.condensed_qp import SMALL_LIFT, TimeVaryingQP
+from controllers.condensed_qp import SMALL_LIFT
 from controllers.disturbance import OffsetFree
 from controllers.linearization import BilinearLinearization
+from controllers.time_varying_qp import TimeVaryingQP
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
 from harness.references import DoubleLaneChange

@@ -29,7 +29,6 @@ KNOWN: dict[tuple[str, str], tuple[int, int]] = {
     ("function", "learners/deep_edmd.py:deep_edmd_step"): (93, 0),
     ("class", "learners/deep_edmd.py:DeepEDMD"): (291, 23),
     ("class", "learners/single_track.py:SingleTrack"): (481, 30),
-    ("module", "controllers/condensed_qp.py"): (547, 0),
 }
 
 

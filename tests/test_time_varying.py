@@ -12,9 +12,10 @@ import pytest
 
 from controllers import DEMPC, DEMPCConfig
 from controllers.active_set import dense_dual, structured_dual
-from controllers.condensed_qp import PREDICTION_NOT_FINITE, CondensedQP, TimeVaryingQP
+from controllers.condensed_qp import PREDICTION_NOT_FINITE, CondensedQP
 from controllers.lifted_linear import LiftedLinearModel
 from controllers.linearization import BilinearLinearization
+from controllers.time_varying_qp import TimeVaryingQP
 from harness.core.episode import MinMaxNormalizer
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
