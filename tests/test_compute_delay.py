@@ -225,7 +225,7 @@ def test_one_switch_puts_every_controller_of_the_run_on_the_same_clock() -> None
                 "config",
                 overrides=["task.learner_name=edmd", "task.controller_name=main", *overrides],
             )
-        return instantiate(cfg.task).controllers
+        return instantiate(cfg.task).closed_loops.controllers
 
     delayed = controllers("task.compute_delay=one_step")
     assert len(delayed) == 8 and {c.compute_delay for c in delayed.values()} == {"one_step"}

@@ -635,19 +635,25 @@ def _collect_locked(
                 bar.update(lengths[index])
         bar.close()
     if stored is None or todo or not stored["complete"]:
-        names = sorted(manifest["episodes"])
-        order = np.random.default_rng([data.seed, 3]).permutation(len(names))
-        shuffled = [names[i] for i in order]
-        counts = [data.split[s] for s in SPLITS]
-        bounds = np.cumsum([0, *counts])
-        manifest["split"] = {
-            s: sorted(shuffled[bounds[i] : bounds[i + 1]]) for i, s in enumerate(SPLITS)
-        }
-        train = [_load_episode(directory, n, manifest) for n in manifest["split"]["train"]]
-        manifest["normalizer"] = MinMaxNormalizer.fit(train).to_dict()
-        manifest["complete"] = True
-        write_manifest(directory, manifest)
+        _complete(directory, data, manifest)
     return len(todo)
+
+
+def _complete(directory: Path, data: DataConfig, manifest: dict[str, Any]) -> None:
+    """Every episode collected: the seeded split and the training drives' normalizer, and the
+    manifest marked complete."""
+    names = sorted(manifest["episodes"])
+    order = np.random.default_rng([data.seed, 3]).permutation(len(names))
+    shuffled = [names[i] for i in order]
+    counts = [data.split[s] for s in SPLITS]
+    bounds = np.cumsum([0, *counts])
+    manifest["split"] = {
+        s: sorted(shuffled[bounds[i] : bounds[i + 1]]) for i, s in enumerate(SPLITS)
+    }
+    train = [_load_episode(directory, n, manifest) for n in manifest["split"]["train"]]
+    manifest["normalizer"] = MinMaxNormalizer.fit(train).to_dict()
+    manifest["complete"] = True
+    write_manifest(directory, manifest)
 
 
 def _episodes_from_files(

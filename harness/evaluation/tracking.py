@@ -109,31 +109,10 @@ def track(
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) < 2:
         raise ValueError(f"reference must be (T >= 2, 3) states, got {reference.shape}")
     controller.reset(reference, path=path)
-    preparing = controller if isinstance(controller, RealTimeIteration) else None
-
-    def act(x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
-        other = 0.0
-        if preparing is not None:  # the preparation belongs to the period before the measurement
-            start = time.perf_counter()
-            preparing.prepare()
-            other = time.perf_counter() - start
-        start = time.perf_counter()
-        answer = controller.act(x, t, pose=plant.pose if path is not None else None)
-        end = time.perf_counter()
-        # The latency ends when the input is ready; what act did after it (the record of its
-        # horizon) is the period's other work, like the preparation.
-        ready = answer[1].input_ready_s
-        ready = end if ready is None or not start <= ready <= end else ready
-        feedback_s.append(ready - start)
-        other_s.append(other + end - ready)
-        return answer
-
-    feedback_s: list[float] = []
-    other_s: list[float] = []
-
+    timed = _Timed(controller, plant, follows=path is not None)
     loop = closed_loop(
         plant,
-        act,
+        timed,
         len(reference),
         speed_mps=float(reference[0, 0]),
         keep_infos=True,
@@ -148,12 +127,12 @@ def track(
         loop.poses,
         reference,
         loop.predicted(),
-        np.array(feedback_s[: len(loop.time_s) - 1]),
+        np.array(timed.feedback_s[: len(loop.time_s) - 1]),
     )
     metrics = tracking_metrics(run, plant.dt, sum(info.fallback for info in infos))
     # A period holds the step's feedback and the rest of its work: the preparation before the
     # measurement, the bookkeeping after the input.
-    other = np.array(other_s[: len(run.solve_time_s)])
+    other = np.array(timed.other_s[: len(run.solve_time_s)])
     metrics["deadline_misses"] = int(np.sum(run.solve_time_s + other > plant.dt))
     metrics["step_time_ms"] = _statistics((run.solve_time_s + other) * 1e3)
     metrics["prepare_time_ms"] = _statistics(other * 1e3)
@@ -200,6 +179,35 @@ def load_run(path: Path) -> TrackingTrajectory:
         )
     except KeyError as error:
         raise ValueError(f"{path} lacks {error}; it was not written by save_run") from error
+
+
+class _Timed:
+    """A controller's ``act`` as the loop calls it, timed: the feedback (measurement to input
+    ready) and the period's other work (the preparation before the measurement, the record of
+    the horizon after the input)."""
+
+    def __init__(self, controller: Controller, plant: Plant, *, follows: bool) -> None:
+        self.controller, self.plant, self.follows = controller, plant, follows
+        self.preparing = controller if isinstance(controller, RealTimeIteration) else None
+        self.feedback_s: list[float] = []
+        self.other_s: list[float] = []
+
+    def __call__(self, x: np.ndarray, t: float) -> tuple[np.ndarray, StepInfo]:
+        other = 0.0
+        if self.preparing is not None:  # the preparation belongs to the period before
+            start = time.perf_counter()
+            self.preparing.prepare()
+            other = time.perf_counter() - start
+        start = time.perf_counter()
+        answer = self.controller.act(x, t, pose=self.plant.pose if self.follows else None)
+        end = time.perf_counter()
+        # The latency ends when the input is ready; what act did after it (the record of its
+        # horizon) is the period's other work, like the preparation.
+        ready = answer[1].input_ready_s
+        ready = end if ready is None or not start <= ready <= end else ready
+        self.feedback_s.append(ready - start)
+        self.other_s.append(other + end - ready)
+        return answer
 
 
 def tracking_metrics(run: TrackingTrajectory, dt: float, solver_failures: int) -> dict[str, Any]:
