@@ -169,11 +169,17 @@ def unwritable(error: OSError, key: str) -> str:
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def _job(cfg: DictConfig) -> None:
+    """``python -m harness``'s job: :func:`job` on the config Hydra composed and set."""
+    job(cfg)
+
+
+def job(cfg: DictConfig) -> None:
     """One job: its failure is recorded in ``error.json`` and, outside a sweep, printed in one
     line (exit 2 for the config's and the run's errors, 1 for anything else).
 
     The job holds its directory while it runs (a sweep's jobs each their own): a directory
-    another run holds is left untouched, the job refused in one line.
+    another run holds is left untouched, the job refused in one line. Apart from ``@hydra.main``
+    so that tests run it in process on a config they composed (``tests/helpers.py``).
     """
     hydra_cfg = HydraConfig.get()
     output_dir = Path(hydra_cfg.runtime.output_dir)

@@ -4,16 +4,22 @@ known system.
 - :func:`compose`: a config as ``python -m harness`` composes it (``as_app``: with Hydra's own
   node, so ``${hydra:...}`` resolves and the app's entry function can run on it);
 - :func:`run_app`: the app's entry function (:func:`harness.app.run`) in this process, as
-  lightning-hydra-template tests its ``train(cfg)``; the real command line has its own tests
-  (``tests/test_app.py``);
+  lightning-hydra-template tests its ``train(cfg)``; :func:`run_job`: the whole job
+  ``python -m harness`` runs (:func:`harness.app.job`: the lock, earlier results moved aside,
+  ``finished.json`` or ``error.json``, a failure's one line and exit status), in this process
+  too; what needs the real command line (its one-line errors, signals, sweeps, the thread
+  environment) starts it in a subprocess (``tests/test_app.py``);
 - :func:`synthetic_episodes`: drives of x_n⁺ = step(x_n, v) in normalized units, written out in
   physical ones, so a learner's fit can be checked against the system that made them.
 """
 
 from __future__ import annotations
 
+import copy
 import json
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Literal
 
@@ -21,11 +27,12 @@ import numpy as np
 from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from harness.app import run
+from harness.app import job, run
 from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.paths import CONF_DIR
+from harness.core.threads import openblas
 
 
 def compose(*overrides: str, as_app: bool = False) -> DictConfig:
@@ -48,8 +55,54 @@ def learner_config(name: str, *overrides: str) -> DictConfig:
 def run_app(run_dir: Path, *overrides: str) -> dict[str, Any]:
     """Run the app's job on ``overrides`` into ``run_dir`` in this process; its metrics.json."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    run(compose(*overrides, as_app=True), run_dir)
+    with _threads_kept():
+        run(compose(*overrides, as_app=True), run_dir)
     return json.loads((run_dir / "metrics.json").read_text())
+
+
+def run_job(run_dir: Path, *overrides: str, cwd: Path | None = None) -> dict[str, Any]:
+    """``python -m harness <overrides> hydra.run.dir=<run_dir>`` in this process, started in
+    ``cwd``; its metrics.json. The config reaches :func:`harness.app.job` as Hydra's
+    ``run_job`` (``hydra/core/utils.py``) hands it over: Hydra's node set with
+    ``runtime.output_dir``, taken off the job's config, the directory made and ``.hydra/``
+    written (the report reads it). A failed job raises ``SystemExit`` with the command's exit
+    status, its one line on stderr, as the command does; Hydra's job log is not written."""
+    started_in = Path.cwd()
+    try:
+        os.chdir(cwd or started_in)  # Hydra's runtime.cwd, and where a stray file would land
+        cfg = compose(*overrides, f"hydra.run.dir={run_dir}", "hydra.mode=RUN", as_app=True)
+        with read_write(cfg.hydra.runtime), open_dict(cfg.hydra.runtime):
+            cfg.hydra.runtime.output_dir = os.path.abspath(run_dir)
+        HydraConfig.instance().set_config(cfg)
+        task_cfg = copy.deepcopy(cfg)
+        with read_write(task_cfg), open_dict(task_cfg):
+            del task_cfg["hydra"]
+        saved = run_dir / cfg.hydra.output_subdir
+        saved.mkdir(parents=True, exist_ok=True)
+        (saved / "config.yaml").write_text(OmegaConf.to_yaml(task_cfg))
+        (saved / "hydra.yaml").write_text(OmegaConf.to_yaml(HydraConfig.instance().cfg))
+        (saved / "overrides.yaml").write_text(OmegaConf.to_yaml(cfg.hydra.overrides.task))
+        with _threads_kept():
+            job(task_cfg)
+        return json.loads((run_dir / "metrics.json").read_text())
+    finally:
+        os.chdir(started_in)
+
+
+@contextmanager
+def _threads_kept() -> Iterator[None]:
+    """The job sets the process's PyTorch and OpenBLAS thread counts: the next test gets them
+    back as they were."""
+    import torch
+
+    torch_threads = torch.get_num_threads()
+    blas = [(set_threads, int(get())) for set_threads, get in openblas()]
+    try:
+        yield
+    finally:
+        torch.set_num_threads(torch_threads)
+        for set_threads, count in blas:
+            set_threads(count)
 
 
 def synthetic_episodes(

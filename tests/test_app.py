@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
@@ -13,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from harness.core.files import DirectoryInUseError, lock_directory, try_lock, unlock_directory
+from tests.helpers import run_job
 
 CHARACTERIZE_KEYS = {
     "understeer_gradient_deg_per_g",
@@ -40,6 +42,9 @@ TINY_COLLECTION = (  # task=collect on three short drives
 def run_harness(
     cwd: Path, *overrides: str, env: dict[str, str] | None = None
 ) -> subprocess.CompletedProcess:
+    """``python -m harness`` itself, for what only the command shows: its one-line errors and
+    exit status, Hydra's callbacks, the environment it starts in (the jobs' results are
+    checked in process, through :func:`tests.helpers.run_job`)."""
     return subprocess.run(
         [sys.executable, "-m", "harness", *overrides],
         cwd=cwd,
@@ -55,8 +60,7 @@ def characterize_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Pa
     """One characterization run of the wet plant, started from an unrelated directory."""
     cwd = tmp_path_factory.mktemp("elsewhere")
     run_dir = tmp_path_factory.mktemp("runs") / "wet"
-    result = run_harness(cwd, "task=characterize", "plant=sedan_wet", f"hydra.run.dir={run_dir}")
-    assert result.returncode == 0, result.stderr[-2000:]
+    run_job(run_dir, "task=characterize", "plant=sedan_wet", cwd=cwd)
     return cwd, run_dir
 
 
@@ -76,6 +80,7 @@ def test_recording_and_figure_land_in_the_run_directory_only(characterize_run) -
 
 
 def test_a_wrong_config_value_fails_with_one_line(tmp_path: Path) -> None:
+    # A process: the line and the exit status are what the command prints and returns.
     result = run_harness(
         tmp_path, "plant.tire.road_friction=-1", "recorder=none", f"hydra.run.dir={tmp_path}/run"
     )
@@ -86,6 +91,7 @@ def test_a_wrong_config_value_fails_with_one_line(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("value", ["0", "two"])
 def test_a_wrong_thread_count_fails_with_one_line_before_any_work(tmp_path: Path, value) -> None:
+    # A process: the line and the exit status are what the command prints and returns.
     result = run_harness(tmp_path, f"threads={value}", f"hydra.run.dir={tmp_path}/run")
     assert result.returncode == 2
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
@@ -94,6 +100,7 @@ def test_a_wrong_thread_count_fails_with_one_line_before_any_work(tmp_path: Path
 
 
 def test_an_unknown_plant_is_named_with_the_choices(tmp_path: Path) -> None:
+    # A process: Hydra's own error, before any job, as the command line prints it.
     result = run_harness(tmp_path, "plant=tractor", f"hydra.run.dir={tmp_path}/run")
     assert result.returncode != 0
     assert "plant/tractor" in result.stderr and "sedan_wet" in result.stderr
@@ -101,18 +108,15 @@ def test_an_unknown_plant_is_named_with_the_choices(tmp_path: Path) -> None:
 
 def test_collect_task_writes_coverage_metrics_figure_and_recording(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
-    result = run_harness(
-        tmp_path, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", f"hydra.run.dir={run_dir}"
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
-    data = json.loads((run_dir / "metrics.json").read_text())["data"]
+    metrics = run_job(run_dir, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", cwd=tmp_path)
+    data = metrics["data"]
     assert data["coverage"]["episodes"] == 3 and data["coverage"]["frames"] > 300
     assert Path(data["path"]).parent == tmp_path / "datasets"
     assert (run_dir / "data_coverage.png").exists() and (run_dir / "collect.rrd").exists()
 
 
 def test_a_run_into_another_runs_directory_moves_its_results_aside_and_never_merges_them(
-    characterize_run, tmp_path: Path
+    characterize_run, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """A finished characterization's directory reused by a collection: the new metrics.json is
     the collection's alone, the characterization's files move to previous/<time>/ (said in one
@@ -122,15 +126,13 @@ def test_a_run_into_another_runs_directory_moves_its_results_aside_and_never_mer
     _, finished = characterize_run
     run_dir = tmp_path / "reused"
     shutil.copytree(finished, run_dir)
-    result = run_harness(
-        tmp_path, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", f"hydra.run.dir={run_dir}"
-    )
-    assert result.returncode == 0, result.stderr[-2000:]
+    with caplog.at_level(logging.WARNING):
+        run_job(run_dir, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", cwd=tmp_path)
     assert set(json.loads((run_dir / "metrics.json").read_text())) == {"data"}
     (previous,) = (run_dir / "previous").iterdir()
     assert set(json.loads((previous / "metrics.json").read_text())) == {"characterize"}
     assert (previous / "finished.json").exists() and not (run_dir / "characterize.rrd").exists()
-    assert f"moved to {previous}" in result.stdout + result.stderr
+    assert f"moved to {previous}" in caplog.text
     assert read_run(run_dir).error is None and set(read_run(run_dir).metrics or {}) == {"data"}
 
 
@@ -139,6 +141,7 @@ def test_a_directory_that_cannot_be_written_is_named_with_the_setting_to_change(
 ) -> None:
     """A run directory or a cache under a file (as a read-only disk, for any user, root too):
     one line naming the path and the setting, no Hydra callback warning."""
+    # A process: the lock callback's exit and the one line come before the job, from Hydra.
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     result = run_harness(tmp_path, "task=characterize", f"hydra.run.dir={blocker / 'run'}")
@@ -171,6 +174,7 @@ def test_a_directory_another_run_holds_is_refused_before_anything_is_written(
     tmp_path: Path, mode: list[str], key: str
 ) -> None:
     """Two runs in one directory mixed their metrics, models and figures."""
+    # A process: the lock is refused to another process, before Hydra writes .hydra/.
     run_dir = (tmp_path / "run").resolve()
     run_dir.mkdir()
     held = try_lock(run_dir / ".lock")  # the run writing there now (another open file)
@@ -248,6 +252,7 @@ def test_the_same_seed_gives_the_same_numbers_whatever_the_environments_threads(
     EDMD whose reductions are large enough to be split over threads (batch x window x lifted
     state > 32768) trains, predicts and tracks to the same digits. Without the setting, on two
     cores, this job's vx RMSE moved by 5 %."""
+    # A process each: OMP_NUM_THREADS is read once, when the libraries load.
     overrides = [
         "data.episodes=3",
         "data.min_steps=3000",

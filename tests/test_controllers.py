@@ -469,6 +469,7 @@ def test_a_wrong_controller_config_fails_from_the_composed_config_alone(
 
 
 def test_a_wrong_controller_config_stops_the_job_before_any_data(tmp_path: Path) -> None:
+    # A process: the line and the exit status are what the command prints and returns.
     result = subprocess.run(
         [
             sys.executable,

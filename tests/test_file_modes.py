@@ -55,6 +55,7 @@ def test_a_collect_run_leaves_every_file_and_directory_as_the_umask_says(
     tmp_path: Path, mask: int
 ) -> None:
     """Dataset (episodes, manifest), metrics, figure, recording and Hydra's own files."""
+    # A process: Hydra writes .hydra/ and the job's log only when it runs the command.
     run_dir, data_root = tmp_path / "run", tmp_path / "datasets"
     result = subprocess.run(
         [

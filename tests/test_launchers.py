@@ -19,6 +19,7 @@ PID_LOG = "hydra.job_logging.formatters.simple.format='pid=%(process)d %(message
 
 def sweep(tmp: Path, *overrides: str) -> tuple[int, Path]:
     """Run ``python -m harness -m`` with tiny jobs; return the sweep's own pid and its directory."""
+    # A process: the launcher starts the jobs, in processes of its own the tests tell apart.
     sweep_dir = tmp / "multirun"
     process = subprocess.Popen(
         [

@@ -29,6 +29,7 @@ from tests.test_pipeline import TINY
 
 
 def sweep(tmp: Path, sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    # A process: a sweep is Hydra's multirun, its directories and its end-of-sweep callback.
     return subprocess.run(
         [
             sys.executable,

@@ -419,6 +419,7 @@ def test_a_killed_collection_leaves_no_process_behind_and_resumes_to_the_same_by
         *(f"data.{key}={value}" for key, value in KILLED.items()),
     ]
     with (tmp_path / "stderr.txt").open("wb") as stderr:
+        # A process: it is killed, and its workers must die with it.
         process = subprocess.Popen(
             [sys.executable, "-m", "harness", *overrides],
             stdout=subprocess.DEVNULL,
