@@ -169,23 +169,7 @@ def _tyre(
     kappa = -slip_velocity / denom
     alpha = math.atan2(vy, denom)
 
-    fz0 = p.NOMINAL_LOAD
-    dfz = (fz - fz0) / fz0
-    dx = max(p.ROAD_FRICTION * (1 + p.LOAD_SENS_X * dfz) * fz, 1e-3)
-    dy = max(p.ROAD_FRICTION * (1 + p.LOAD_SENS_Y * dfz) * fz, 1e-3)
-    kx = p.SLIP_STIFFNESS * fz
-    shape = p.CORNERING_LOAD_SHAPE
-    ky = (
-        (p.CORNERING_FRONT if front else p.CORNERING_REAR)
-        * fz0
-        * math.sin(2 * math.atan(fz / (shape * fz0)))
-        / math.sin(2 * math.atan(1 / shape))
-    )
-    fy0 = -_magic_formula(alpha, ky / (p.SHAPE_Y * dy), p.SHAPE_Y, dy, p.CURV_Y)
-
-    fx = _longitudinal_force(kappa, alpha, kx, dx, p)
-    byk = p.RBY1 * math.cos(math.atan(p.RBY2 * alpha))
-    fy = _combined_weight(kappa, byk, p.RCY1) * fy0
+    fx, fy, kx, dx = _slip_forces(p, fz, kappa, alpha, front)
 
     h = 1e-4
     dfx_dkappa = (
@@ -205,3 +189,26 @@ def _tyre(
     force = np.array([fx * ex[0] + fy * ey[0], fx * ex[1] + fy * ey[1], fz])
     point = np.array([center[0], center[1], 0.0])
     mujoco.mj_applyFT(m, d, force, zero3, point, body, d.qfrc_applied)
+
+
+def _slip_forces(
+    p: _Params, fz: float, kappa: float, alpha: float, front: bool
+) -> tuple[float, float, float, float]:
+    """(Fx, Fy) of the combined-slip magic formula at load ``fz``, slip ratio ``kappa`` and slip
+    angle ``alpha``; with the longitudinal slip stiffness and peak (kx, dx) they came from."""
+    fz0 = p.NOMINAL_LOAD
+    dfz = (fz - fz0) / fz0
+    dx = max(p.ROAD_FRICTION * (1 + p.LOAD_SENS_X * dfz) * fz, 1e-3)
+    dy = max(p.ROAD_FRICTION * (1 + p.LOAD_SENS_Y * dfz) * fz, 1e-3)
+    kx = p.SLIP_STIFFNESS * fz
+    shape = p.CORNERING_LOAD_SHAPE
+    ky = (
+        (p.CORNERING_FRONT if front else p.CORNERING_REAR)
+        * fz0
+        * math.sin(2 * math.atan(fz / (shape * fz0)))
+        / math.sin(2 * math.atan(1 / shape))
+    )
+    fy0 = -_magic_formula(alpha, ky / (p.SHAPE_Y * dy), p.SHAPE_Y, dy, p.CURV_Y)
+    fx = _longitudinal_force(kappa, alpha, kx, dx, p)
+    byk = p.RBY1 * math.cos(math.atan(p.RBY2 * alpha))
+    return fx, _combined_weight(kappa, byk, p.RCY1) * fy0, kx, dx

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from harness.core.checks import positive, require, shown
@@ -375,9 +376,23 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
     axes = fig.subplots(2, 3)
     name = plant.params.name
 
+    _circle_panel(axes[0, 0], runs, metrics, plant)
+    _step_steer_panel(axes[0, 1], runs, metrics, plant)
+    _braking_panel(axes[0, 2], runs, metrics, plant)
+    _launch_panel(axes[1, 0], runs, metrics, plant)
+    _low_speed_panel(axes[1, 1], runs, metrics, plant)
+    _coast_down_panel(axes[1, 2], runs, metrics, plant)
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Plant characterization: {name}")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+
+
+def _circle_panel(ax: Axes, runs: dict[str, Trajectory], metrics: dict, plant: Sedan) -> None:
+    """ISO 4138 ramp: steering against lateral acceleration, and the held angles."""
     ramp = runs["steady_state_circle"]
     lateral = moving_average(ramp.lateral_accel_mps2, int(0.5 / plant.dt))
-    ax = axes[0, 0]
     ax.plot(lateral / G, ramp.inputs[:, 0], lw=1.2)
     ax.set(
         xlabel="lateral acceleration (g)",
@@ -401,8 +416,10 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
     ax.axvline(plant.params.tire.road_friction, color="k", ls=":", label="μ g")
     ax.legend(loc="upper left")
 
+
+def _step_steer_panel(ax: Axes, runs: dict[str, Trajectory], metrics: dict, plant: Sedan) -> None:
+    """ISO 7401 step steer: yaw rate against the road-wheel angle."""
     step = runs["step_steer"]
-    ax = axes[0, 1]
     ax.plot(step.time_s, np.rad2deg(step.states[:, 2]), label="yaw rate (deg/s)")
     ax.plot(
         step.time_s,
@@ -419,8 +436,10 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
     )
     ax.legend()
 
+
+def _braking_panel(ax: Axes, runs: dict[str, Trajectory], metrics: dict, plant: Sedan) -> None:
+    """Full braking from 100 km/h: speed against distance."""
     brake = runs["braking"]
-    ax = axes[0, 2]
     ax.plot(brake.distance_m, brake.states[:, 0] * 3.6)
     ax.set(
         xlabel="distance (m)",
@@ -428,8 +447,10 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
         title=f"full braking from 100 km/h: {metrics['braking_distance_100kph_m']:.1f} m",
     )
 
+
+def _launch_panel(ax: Axes, runs: dict[str, Trajectory], metrics: dict, plant: Sedan) -> None:
+    """Launch at full throttle: speed against time."""
     launch = runs["launch"]
-    ax = axes[1, 0]
     ax.plot(launch.time_s, launch.states[:, 0] * 3.6)
     ax.axhline(100, color="k", ls=":")
     accel = metrics["accel_0_100kph_s"]
@@ -440,8 +461,10 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
         f"{'not reached' if accel is None else f'{accel:.1f} s'}",
     )
 
+
+def _low_speed_panel(ax: Axes, runs: dict[str, Trajectory], metrics: dict, plant: Sedan) -> None:
+    """Low-speed turn: yaw rate against the kinematic v δ / L."""
     low = runs["low_speed_turn"]
-    ax = axes[1, 1]
     delta = np.deg2rad(low.inputs[:, 0]) / plant.params.steering.steering_ratio
     ax.plot(low.time_s, low.states[:, 2], label="yaw rate")
     ax.plot(low.time_s, low.states[:, 0] * delta / _wheelbase(plant), ls="--", label="v δ / L")
@@ -452,8 +475,10 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
     )
     ax.legend()
 
+
+def _coast_down_panel(ax: Axes, runs: dict[str, Trajectory], metrics: dict, plant: Sedan) -> None:
+    """Coast-down: the measured resistance against its fit."""
     coast = runs["coast_down"]
-    ax = axes[1, 2]
     speed = coast.states[:, 0]
     mass = metrics["coast_down_effective_mass_kg"]
     ax.plot(
@@ -480,8 +505,3 @@ def plot(runs: dict[str, Trajectory], metrics: dict, plant: Sedan, path: Path) -
         f"(true {metrics['rolling_resistance_true']:.4f})",
     )
     ax.legend()
-    for ax in axes.flat:
-        ax.grid(alpha=0.3)
-    fig.suptitle(f"Plant characterization: {name}")
-    fig.tight_layout()
-    save_figure(fig, path, dpi=110)
