@@ -9,7 +9,8 @@ tests check). Every prediction table has its row (``prediction.persistence`` in 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Self
+from dataclasses import dataclass
+from typing import ClassVar, Self
 
 import numpy as np
 import torch
@@ -17,16 +18,20 @@ import torch
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import Learner, Shape, check_rollout_args
 
-__all__ = ["Persistence"]
+__all__ = ["Persistence", "PersistenceConfig"]
+
+
+@dataclass(frozen=True)
+class PersistenceConfig:
+    """Persistence has no settings (``conf/learner/persistence.yaml``)."""
 
 
 class Persistence(Learner):
     """x_{k+1} = x_k under any inputs (module docstring)."""
 
     name: ClassVar[str] = "persistence"
-
-    def __init__(self) -> None:
-        self._hyperparameters: dict[str, Any] = {}
+    config_class: ClassVar[type] = PersistenceConfig
+    config: PersistenceConfig
 
     def fit(
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer

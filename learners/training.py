@@ -44,9 +44,9 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -63,6 +63,7 @@ from harness.core.checks import (
 )
 from harness.core.files import write_atomic
 from learners.nets import FlatParameters
+from learners.settings import block
 from learners.windows import WindowData
 
 __all__ = [
@@ -88,8 +89,6 @@ _CHECKSUM_MARKER = b"\nkoopman-harness checkpoint sha256 "
 _TRAILER_BYTES = len(_CHECKSUM_MARKER) + 64 + 1
 
 log = logging.getLogger(__name__)
-
-_Block = TypeVar("_Block")
 
 
 @dataclass(frozen=True)
@@ -257,25 +256,6 @@ class RandomLayerConfig:
     def __post_init__(self) -> None:
         boolean("learner.random_layer.enabled", self.enabled)
         non_negative("learner.random_layer.std", self.std)
-
-
-def block(cls: type[_Block], value: _Block | Mapping[str, Any] | None, key: str) -> _Block:
-    """``learner.<key>`` as a ``cls``: built already (Hydra's ``_target_``), a plain mapping (a
-    model file's hyperparameters, a test) or None (the defaults). Unknown keys fail in one line."""
-    if isinstance(value, cls):
-        return value
-    if value is None:
-        return cls()
-    if not isinstance(value, Mapping):
-        raise ValueError(f"learner.{key} must be a mapping of settings (got {value!r})")
-    values = {k: v for k, v in value.items() if k != "_target_"}
-    names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise ValueError(
-            f"learner.{key}.{unknown[0]} is not a key of {cls.__name__} ({', '.join(names)})"
-        )
-    return cls(**values)
 
 
 class Objective(Protocol):
