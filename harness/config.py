@@ -18,6 +18,7 @@ import math
 import re
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -32,6 +33,14 @@ from harness.data.logs import LogsConfig
 from harness.data.store import DataConfig
 from harness.plant.params import SedanParams
 from harness.tasks.characterize import Characterize
+from learners import DNN, EDMD, DeepEDMD, Learner
+from learners.bilinear import BilinearEDMD
+from learners.bilinear_deep_edmd import BilinearDeepEDMD
+from learners.input_edmd import InputEDMD
+from learners.persistence import Persistence
+from learners.sindy import SINDyC
+from learners.single_track import SingleTrack
+from learners.split_pedal import SplitPedal
 
 T = TypeVar("T")
 
@@ -48,24 +57,35 @@ class SedanConfig(SedanParams):
     _convert_: str = "object"
 
 
-def schema_of(settings: type, convert: str = "all") -> type:
+def schema_of(settings: type, convert: str | None = "all", target: type | None = None) -> type:
     """A settings dataclass as a Hydra schema: the same fields and defaults, and ``_target_``
     naming the class, so its YAML files list only what differs from the defaults and every key
     can still be overridden (``controller.Np=60``). Not frozen, as Hydra merges overrides into
-    it; composing it checks the types, building it runs the class's own ``__post_init__``."""
+    it; composing it checks the types, building it runs the class's own ``__post_init__``.
+
+    ``target``: the class the node builds when it is not ``settings`` itself (a learner, which
+    takes its settings as keywords); ``convert`` None leaves ``_convert_`` out (Hydra's
+    default). A field holding a settings dataclass (``learner.training``) is a nested schema
+    with its own ``_target_``, so it is built as that dataclass and checked where it lives.
+    """
     hints = typing.get_type_hints(settings)
     names = [f.name for f in dataclasses.fields(settings)]
+    built = target or settings
     specs: list[tuple[str, Any, Any]] = [
-        ("_target_", str, dataclasses.field(default=f"{settings.__module__}.{settings.__name__}")),
-        ("_convert_", str, dataclasses.field(default=convert)),
+        ("_target_", str, dataclasses.field(default=f"{built.__module__}.{built.__qualname__}")),
     ]
+    if convert is not None:
+        specs.append(("_convert_", str, dataclasses.field(default=convert)))
     for f in dataclasses.fields(settings):
         factory: Any = f.default_factory
         default = factory() if f.default is dataclasses.MISSING else f.default
-        if isinstance(default, tuple | list):  # OmegaConf holds sequences as lists
-            specs.append((f.name, hints[f.name], _list_field(list(default))))
+        if dataclasses.is_dataclass(hints[f.name]):
+            nested = schema_of(hints[f.name], convert=None)
+            specs.append((f.name, nested, _nested_field(nested, default)))
+        elif isinstance(default, tuple | list):  # OmegaConf holds sequences as lists
+            specs.append((f.name, _schema_hint(hints[f.name]), _list_field(_as_lists(default))))
         else:
-            specs.append((f.name, hints[f.name], dataclasses.field(default=default)))
+            specs.append((f.name, _schema_hint(hints[f.name]), dataclasses.field(default=default)))
 
     def check(self: Any) -> None:
         settings(**{name: getattr(self, name) for name in names})
@@ -75,8 +95,30 @@ def schema_of(settings: type, convert: str = "all") -> type:
     )
 
 
+def _schema_hint(hint: Any) -> Any:
+    """``hint`` as OmegaConf types it: a ``Sequence[X]`` as ``list[X]`` (of lists, nested)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union):
+        options = [a for a in args if a is not type(None)]
+        single = len(options) == 1 and len(args) == 2
+        return typing.Optional[_schema_hint(options[0])] if single else hint  # noqa: UP045
+    if origin in (list, tuple, Sequence) and len(args) == 1:
+        return typing.List[_schema_hint(args[0])]  # type: ignore[misc]  # noqa: UP006
+    return hint
+
+
+def _as_lists(value: Any) -> Any:
+    return [_as_lists(v) for v in value] if isinstance(value, tuple | list) else value
+
+
 def _list_field(default: list[Any]) -> Any:
-    return dataclasses.field(default_factory=lambda: list(default))
+    return dataclasses.field(default_factory=lambda: _as_lists(default))
+
+
+def _nested_field(schema: type, default: Any) -> Any:
+    """A nested schema's default: the settings dataclass's default instance, field by field."""
+    values = {f.name: _as_lists(getattr(default, f.name)) for f in dataclasses.fields(default)}
+    return dataclasses.field(default_factory=lambda: schema(**values))
 
 
 def register_configs() -> None:
@@ -88,6 +130,24 @@ def register_configs() -> None:
     store.store(group="controller", name="de_mpc_schema", node=schema_of(DEMPCConfig))
     store.store(group="controller", name="bicycle_mpc_schema", node=schema_of(BicycleMPCConfig))
     store.store(group="task", name="characterize_schema", node=schema_of(Characterize))
+    for learner in LEARNERS:  # built by the learner, which takes its settings as keywords
+        node = schema_of(learner.config_class, convert=None, target=learner)
+        store.store(group="learner", name=f"{learner.name}_schema", node=node)
+
+
+# The learners with a schema of their own (``conf/learner/*.yaml`` name ``<name>_schema``).
+LEARNERS: tuple[type[Learner], ...] = (
+    EDMD,
+    BilinearEDMD,
+    InputEDMD,
+    SINDyC,
+    SingleTrack,
+    Persistence,
+    DNN,
+    DeepEDMD,
+    BilinearDeepEDMD,
+    SplitPedal,
+)
 
 
 # Keys that hold the control period: plant, data, model and controller share one (the model
