@@ -73,7 +73,9 @@ class StabilityPenalty:
     eigenvalues are allowed up to (dimensionless, per 10 ms step; 1 is the unit circle).
     """
 
+    # Loss per unit of |eigenvalue| above radius (data-loss units); 0: off.
     weight: float = 0.0
+    # Allowed |eigenvalue| per model period (1.0: per second too; r per step = r_per_s ** period_s).
     radius: float = 1.0
 
     def __post_init__(self) -> None:
@@ -146,9 +148,8 @@ class BilinearDeepEDMDConfig(DeepEDMDConfig):
     """Bilinear Deep EDMD's settings (``conf/learner/bilinear_deep_edmd.yaml``): Deep EDMD's,
     then the bilinear term's."""
 
-    prediction_output: str = (
-        "linear"  # C z, what a bilinear MPC predicts with; decoder: the paper's
-    )
+    # C z, what a bilinear MPC predicts with; decoder: the paper's read-out.
+    prediction_output: str = "linear"
     # H inside the multi-step losses; false: Deep EDMD's training, bit for bit.
     bilinear_training: bool = True
     # lstsq: A, B, H refitted on the lifted data after training | none.

@@ -195,9 +195,8 @@ class SingleTrackConfig:
     cg_to_front_m: float | None = 1.15  # a: CG to front axle (wheelbase x rear axle load share)
     cg_to_rear_m: float | None = 1.55  # b: CG to rear axle
     mass_kg: float = 1500.0  # only converts the identified per-mass values to N/rad and kg m^2
-    min_speed_mps: float = (
-        3.0  # lateral terms use max(vx, this); slower samples stay out of the fit
-    )
+    # Lateral terms use max(vx, this); slower samples stay out of the fit.
+    min_speed_mps: float = 3.0
     max_lateral_accel_mps2: float = 4.0  # lateral and yaw fits in the tyres' linear range (0.4 g)
 
     def __post_init__(self) -> None:

@@ -114,23 +114,30 @@ class TrainingConfig:
     """
 
     batch_size: int = 64
-    lr: float = 1e-4
-    max_steps: int | None = 100_000
+    lr: float = 1e-4  # Adam's, constant (the paper's)
+    max_steps: int | None = 100_000  # the paper trains ~1e5 batches
     max_epochs: int | None = None
-    patience: int = 20
+    patience: int = 20  # validations without improvement before early stopping
     eval_every_steps: int = 1000
     checkpoint_every_steps: int = 1000
     seed: int = 0
+    # null: the job's threads (conf/config.yaml: 1); a number: for training alone.
     num_threads: int | None = None
     progress: bool = True
+    # window_loss (the paper's) | rollout: checkpoint by whole-drive validation rollouts (ours).
     selection: str = "window_loss"
+    # m/s, m/s, rad/s: what an RMSE of vx, vy, r counts in the rollout score.
     rollout_scales: Sequence[float] = (1.0, 0.1, 0.05)
+    # constant (the paper's) | cosine: linear warm-up, then cosine decay to lr_final (ours).
     lr_schedule: str = "constant"
     warmup_steps: int = 0
     lr_final: float = 0.0
-    grad_clip_norm: float | None = None
+    grad_clip_norm: float | None = None  # clip the gradient's 2-norm (null: no clipping, the paper)
+    # [[p, batches], ...]: shorter windows first, then learner.horizon (null: none, the paper).
     curriculum: Sequence[Sequence[int]] | None = None
-    initial_state_noise: float = 0.0
+    initial_state_noise: float = 0.0  # std (normalized units) added to each window's first state
+    # Ours, off: validate, keep, return the weights' moving average (d per batch); no gain on
+    # data=default (docs/findings/training_recipe.md).
     average_decay: float | None = None
 
     def __post_init__(self) -> None:

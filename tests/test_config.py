@@ -32,6 +32,7 @@ from harness.tasks.characterize import Characterize
 from harness.tasks.collect import Collect
 from harness.tasks.pipeline import Pipeline
 from learners import Learner
+from learners.training import TrainingConfig
 from tests.helpers import compose
 
 SCHEMAS = {"plant": SedanParams, "data": (DataConfig, LogsConfig)}
@@ -231,6 +232,7 @@ BUILDS: dict[str, type | tuple[type, ...]] = {
     "disturbance": DisturbanceEstimator,
     "horizon": DEMPCConfig,
     "tracking": DEMPCConfig,
+    "training": TrainingConfig,
 }
 
 
@@ -253,6 +255,9 @@ def test_every_config_file_composes_validates_and_builds(group: str, name: str) 
     elif group in ("horizon", "tracking"):  # a part of a controller preset
         cfg = compose(f"{group}@controller={name}", as_app=True)
         node = cfg.controller
+    elif group == "training":  # a part of a trained learner's preset
+        cfg = compose("learner=dnn", f"training@learner.training={name}", as_app=True)
+        node = cfg.learner.training
     else:
         logs = group == "data" and "logs_schema" in (CONF_DIR / "data" / f"{name}.yaml").read_text()
         cfg = compose(f"{group}={name}", *(["data.path=."] if logs else []), as_app=True)
