@@ -54,7 +54,7 @@ class SedanConfig(SedanParams):
     """
 
     _target_: str = "harness.plant.Sedan"
-    _convert_: str = "object"
+    _convert_: str = "object"  # the blocks reach Sedan as TireParams, ChassisParams, ... instances
 
 
 def schema_of(settings: type, convert: str | None = "all", target: type | None = None) -> type:

@@ -9,10 +9,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -291,3 +294,72 @@ def test_a_controller_preset_is_a_few_lines_built_from_parts(preset: str) -> Non
     ]
     assert len(lines) <= 10, f"{preset}.yaml has {len(lines)} lines of YAML"
     assert _defaults_depth("controller", preset) <= 2, f"{preset}.yaml builds on too many levels"
+
+
+def _schema_of_file(group: str, name: str) -> str | None:
+    """The schema a preset composes, itself or through the presets of its group it builds on."""
+    for entry in OmegaConf.load(CONF_DIR / group / f"{name}.yaml").get("defaults", []):
+        if isinstance(entry, str) and entry.endswith("_schema"):
+            return entry
+        if isinstance(entry, str) and (CONF_DIR / group / f"{entry}.yaml").exists():
+            found = _schema_of_file(group, entry)
+            if found is not None:
+                return found
+    return None
+
+
+SCHEMA_FILES = [(g, n) for g, n in ALL_CONFIGS if "/" not in g and _schema_of_file(g, n)]
+
+
+def _leaves(node: object, prefix: str = "") -> dict[str, object]:
+    if isinstance(node, dict) and node:
+        found: dict[str, object] = {}
+        for key, value in node.items():
+            found.update(_leaves(value, f"{prefix}.{key}" if prefix else str(key)))
+        return found
+    return {prefix: node} if prefix else {}
+
+
+def _at(node: object, key: str) -> object:
+    """The value at a dotted key of nested dicts, unresolved (``${seed}`` as written)."""
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return "<absent>"
+        node = node[part]
+    return node
+
+
+@pytest.fixture(scope="module")
+def conf_copy(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    copy = tmp_path_factory.mktemp("conf") / "conf"
+    shutil.copytree(CONF_DIR, copy)
+    return copy
+
+
+@pytest.mark.parametrize(("group", "name"), SCHEMA_FILES, ids=[f"{g}/{n}" for g, n in SCHEMA_FILES])
+def test_a_preset_with_a_schema_lists_only_what_differs(
+    group: str, name: str, conf_copy: Path
+) -> None:
+    """Every key a preset sets changes what it composes to: its schema's defaults (and the
+    presets and parts it builds on) hold the rest, so a setting's value is written once."""
+    path = conf_copy / group / f"{name}.yaml"
+    written = path.read_text()
+    own = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    assert isinstance(own, dict)
+    defaults = own.pop("defaults", None)
+    package = written.splitlines()[0] if written.startswith("# @package") else ""
+
+    def composed() -> dict[str, object]:
+        with initialize_config_dir(config_dir=str(conf_copy), version_base="1.3"):
+            cfg = hydra_compose(config_name="config", overrides=[f"{group}={name}"])
+        node = OmegaConf.to_container(cfg, resolve=False)
+        return node if package else node[group]  # type: ignore[index, return-value]
+
+    try:
+        path.write_text(f"{package}\n" + OmegaConf.to_yaml({"defaults": defaults or []}))
+        base = composed()
+    finally:
+        path.write_text(written)
+    preset = composed()
+    same = [key for key in _leaves(own) if _at(base, key) == _at(preset, key)]
+    assert not same, f"conf/{group}/{name}.yaml sets {same} to what its defaults give already"
