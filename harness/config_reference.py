@@ -233,7 +233,8 @@ def _part_comments(path: Path) -> dict[str, str]:
     """The key comments of the parts a file composes (``- /training@training: recipe``), each
     key under the package the part lands in."""
     comments: dict[str, str] = {}
-    for entry in OmegaConf.load(path).get("defaults", []):
+    node = OmegaConf.load(path)
+    for entry in node.get("defaults", []) if isinstance(node, DictConfig) else []:
         if not isinstance(entry, DictConfig):
             continue
         for name, option in entry.items():

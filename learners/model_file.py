@@ -172,7 +172,11 @@ def package_class(name: str, kind: type, what: str, source: str) -> Any:
     module_name, _, class_name = name.rpartition(".")
     if not module_name.startswith("learners."):
         raise ValueError(f"{source} names class {name!r} outside the learners package")
-    cls = getattr(importlib.import_module(module_name), class_name, None)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError:
+        raise ValueError(f"{source} names {name!r}, whose module cannot be imported") from None
+    cls = getattr(module, class_name, None)
     if not (isinstance(cls, type) and issubclass(cls, kind)):
         raise ValueError(f"{source} names {name!r}, which is not {what}")
     return cls
