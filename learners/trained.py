@@ -23,10 +23,15 @@ from learners.base import (
     check_fit_data,
     check_rollout_args,
 )
-from learners.model_file import RUN_SETTINGS
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
 from learners.settings import block, settle
-from learners.training import History, Objective, RandomLayerConfig, TrainingConfig
+from learners.training import (
+    RUN_SETTINGS,
+    History,
+    Objective,
+    RandomLayerConfig,
+    TrainingConfig,
+)
 from learners.windows import WindowData
 
 __all__ = [

@@ -44,7 +44,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -67,6 +67,7 @@ from learners.settings import block
 from learners.windows import WindowData
 
 __all__ = [
+    "RUN_SETTINGS",
     "History",
     "Objective",
     "RandomLayerConfig",
@@ -89,6 +90,11 @@ _CHECKSUM_MARKER = b"\nkoopman-harness checkpoint sha256 "
 _TRAILER_BYTES = len(_CHECKSUM_MARKER) + 64 + 1
 
 log = logging.getLogger(__name__)
+
+
+# The mark of a training setting that says how long or how a model was trained, not which model
+# it is (RUN_SETTINGS).
+_RUN = {"run": True}
 
 
 @dataclass(frozen=True)
@@ -115,15 +121,16 @@ class TrainingConfig:
 
     batch_size: int = 64
     lr: float = 1e-4  # Adam's, constant (the paper's)
-    max_steps: int | None = 100_000  # the paper trains ~1e5 batches
-    max_epochs: int | None = None
-    patience: int = 20  # validations without improvement before early stopping
+    max_steps: int | None = field(default=100_000, metadata=_RUN)  # the paper trains ~1e5 batches
+    max_epochs: int | None = field(default=None, metadata=_RUN)
+    # Validations without improvement before early stopping.
+    patience: int = field(default=20, metadata=_RUN)
     eval_every_steps: int = 1000
-    checkpoint_every_steps: int = 1000
+    checkpoint_every_steps: int = field(default=1000, metadata=_RUN)
     seed: int = 0
     # null: the job's threads (conf/config.yaml: 1); a number: for training alone.
-    num_threads: int | None = None
-    progress: bool = True
+    num_threads: int | None = field(default=None, metadata=_RUN)
+    progress: bool = field(default=True, metadata=_RUN)
     # window_loss (the paper's) | rollout: checkpoint by whole-drive validation rollouts (ours).
     selection: str = "window_loss"
     # m/s, m/s, rad/s: what an RMSE of vx, vy, r counts in the rollout score.
@@ -247,6 +254,12 @@ class TrainingConfig:
             if step < end:
                 return p
         return horizon
+
+
+# Training settings that say how long or how a model was trained, not which model it is (the
+# fields marked _RUN): a model file trained with another budget still is the configured learner,
+# and a training may resume from its checkpoint with them changed (learners/trained.py).
+RUN_SETTINGS = tuple(f.name for f in fields(TrainingConfig) if f.metadata.get("run"))
 
 
 @dataclass(frozen=True)
