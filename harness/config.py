@@ -15,8 +15,11 @@ class says).
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib
 import inspect
 import math
+import pkgutil
 import re
 import types
 import typing
@@ -29,20 +32,14 @@ from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
+import learners
 from controllers import BicycleMPCConfig, DEMPCConfig
 from harness.core.checks import is_number
 from harness.data.logs import LogsConfig
 from harness.data.store import DataConfig
 from harness.plant.params import SedanParams
 from harness.tasks.characterize import Characterize
-from learners import DNN, EDMD, DeepEDMD, Learner
-from learners.bilinear import BilinearEDMD
-from learners.bilinear_deep_edmd import BilinearDeepEDMD
-from learners.input_edmd import InputEDMD
-from learners.persistence import Persistence
-from learners.sindy import SINDyC
-from learners.single_track import SingleTrack
-from learners.split_pedal import SplitPedal
+from learners import Learner
 
 T = TypeVar("T")
 
@@ -132,24 +129,25 @@ def register_configs() -> None:
     store.store(group="controller", name="de_mpc_schema", node=schema_of(DEMPCConfig))
     store.store(group="controller", name="bicycle_mpc_schema", node=schema_of(BicycleMPCConfig))
     store.store(group="task", name="characterize_schema", node=schema_of(Characterize))
-    for learner in LEARNERS:  # built by the learner, which takes its settings as keywords
+    for learner in learner_classes():  # built by the learner, which takes its settings
         node = schema_of(learner.config_class, convert=None, target=learner)
         store.store(group="learner", name=f"{learner.name}_schema", node=node)
 
 
-# The learners with a schema of their own (``conf/learner/*.yaml`` name ``<name>_schema``).
-LEARNERS: tuple[type[Learner], ...] = (
-    EDMD,
-    BilinearEDMD,
-    InputEDMD,
-    SINDyC,
-    SingleTrack,
-    Persistence,
-    DNN,
-    DeepEDMD,
-    BilinearDeepEDMD,
-    SplitPedal,
-)
+@functools.cache
+def learner_classes() -> tuple[type[Learner], ...]:
+    """Every learner class of the ``learners`` package, by name: each has a schema of its own,
+    ``<name>_schema`` (a new learner is its class and its YAML file, no list to extend)."""
+    for module in pkgutil.iter_modules(learners.__path__):
+        importlib.import_module(f"{learners.__name__}.{module.name}")
+    found: dict[str, Any] = {}
+    stack: list[Any] = [Learner]
+    while stack:
+        cls = stack.pop()
+        stack.extend(cls.__subclasses__())
+        if cls.__module__.startswith(f"{learners.__name__}.") and not inspect.isabstract(cls):
+            found.setdefault(cls.name, cls)
+    return tuple(found[name] for name in sorted(found))
 
 
 # Keys that hold the control period: plant, data, model and controller share one (the model
@@ -218,9 +216,9 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
 
 
 def _builds_a_learner(schema: type) -> bool:
-    """Whether a schema's ``_target_`` is a learner class (a learner schema of ``LEARNERS``)."""
+    """Whether a schema's ``_target_`` is a learner class (a schema of :func:`learner_classes`)."""
     target = {f.name: f.default for f in dataclasses.fields(schema)}.get("_target_")
-    return any(target == f"{cls.__module__}.{cls.__qualname__}" for cls in LEARNERS)
+    return any(target == f"{cls.__module__}.{cls.__qualname__}" for cls in learner_classes())
 
 
 def _not_checked_here(node: DictConfig | ListConfig, key: Any, full_key: str) -> bool:

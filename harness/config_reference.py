@@ -185,7 +185,7 @@ def _schemas() -> dict[str, type]:
     """The dataclasses behind the schemas ``harness.config`` stores, by their stored name."""
     from controllers.bicycle_mpc import BicycleMPCConfig
     from controllers.de_mpc import DEMPCConfig
-    from harness.config import LEARNERS, SedanConfig
+    from harness.config import SedanConfig, learner_classes
     from harness.data.logs import LogsConfig
     from harness.data.store import DataConfig
     from harness.tasks.characterize import Characterize
@@ -197,7 +197,7 @@ def _schemas() -> dict[str, type]:
         "de_mpc_schema": DEMPCConfig,
         "bicycle_mpc_schema": BicycleMPCConfig,
         "characterize_schema": Characterize,
-        **{f"{learner.name}_schema": learner.config_class for learner in LEARNERS},
+        **{f"{learner.name}_schema": learner.config_class for learner in learner_classes()},
     }
 
 

@@ -33,7 +33,7 @@ from harness.core import contracts
 from harness.core.contracts import STATE_NAMES
 from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
 from learners.model_file import INPUT_DIM, STATE_DIM, Dim, Shape, load, write
-from learners.settings import plain
+from learners.settings import NoSettings, plain
 
 __all__ = [
     "INPUT_DIM",
@@ -52,13 +52,13 @@ class Learner(contracts.RunLearner, ABC):
     x_{k+1} = f(x_k, u_k) learned from episodes, saved to and loaded from one file format.
 
     Subclasses set ``name`` (their config-group name, used in messages and file names) and
-    ``config_class``, the frozen dataclass of their settings (:mod:`learners.settings`): the
-    learner takes its fields as keywords (or in order), so that a config maps 1:1 to the code,
-    and keeps them, checked, as ``config``.
+    ``config_class``, the frozen dataclass of their settings (:mod:`learners.settings`; none by
+    default): the learner takes its fields as keywords (or in order), so that a config maps 1:1
+    to the code, and keeps them, checked, as ``config``.
     """
 
     name: ClassVar[str]
-    config_class: ClassVar[type]
+    config_class: ClassVar[type] = NoSettings
     config: Any
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -68,8 +68,8 @@ class Learner(contracts.RunLearner, ABC):
         )
         if not abstract and not isinstance(getattr(cls, "name", None), str):
             raise TypeError(f"{cls.__qualname__} must set the class attribute `name`")
-        if not abstract and not is_dataclass(getattr(cls, "config_class", None)):
-            raise TypeError(f"{cls.__qualname__} must set `config_class` to its settings dataclass")
+        if not is_dataclass(cls.config_class):
+            raise TypeError(f"{cls.__qualname__}.config_class must be its settings dataclass")
 
     def __init__(self, *args: Any, **settings: Any) -> None:
         self.config = self.config_class(*args, **settings)

@@ -9,7 +9,6 @@ tests check). Every prediction table has its row (``prediction.persistence`` in 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import ClassVar, Self
 
 import numpy as np
@@ -18,20 +17,13 @@ import torch
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import Learner, Shape, check_rollout_args
 
-__all__ = ["Persistence", "PersistenceConfig"]
-
-
-@dataclass(frozen=True)
-class PersistenceConfig:
-    """Persistence has no settings (``conf/learner/persistence.yaml``)."""
+__all__ = ["Persistence"]
 
 
 class Persistence(Learner):
     """x_{k+1} = x_k under any inputs (module docstring)."""
 
     name: ClassVar[str] = "persistence"
-    config_class: ClassVar[type] = PersistenceConfig
-    config: PersistenceConfig
 
     def fit(
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer

@@ -12,12 +12,17 @@ file holds) are its settings as plain data (:func:`plain`).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, fields, is_dataclass
+from dataclasses import asdict, dataclass, fields, is_dataclass
 from typing import Any, TypeVar
 
-__all__ = ["block", "plain", "settle"]
+__all__ = ["NoSettings", "block", "plain", "settle"]
 
 _Block = TypeVar("_Block")
+
+
+@dataclass(frozen=True)
+class NoSettings:
+    """The settings of a learner that has none (persistence)."""
 
 
 def settle(settings: Any, **values: Any) -> None:
