@@ -4,20 +4,26 @@ Each schema is stored in Hydra's ConfigStore under its group, and each YAML file
 names it first in its defaults list (``conf/plant/sedan.yaml``: ``- sedan_schema``), so
 OmegaConf refuses an unknown key or a value of the wrong type when the config is composed,
 naming the full key. Range checks live in each dataclass's ``__post_init__``; :func:`validate`
-checks every key of the composed config at once, before any work starts: it builds every
-structured node (plant, data, other plants) and every ``_target_`` node but the task (learner
-and its blocks, controllers, references, recorder), and checks that every part the task uses
-shares the plant's control period. Errors are one line naming the full key where the node
-lives (``task.extra_controllers.de_mpc_long.Np``, not the ``controller.Np`` its class says).
+checks every key of the composed config at once, before any work starts: it builds the
+settings dataclass of every structured node (plant, data, learner, controllers, other plants)
+and every other ``_target_`` node but the task (references, recorder), and checks that every
+part the task uses shares the plant's control period. Errors are one line naming the full key
+where the node lives (``task.extra_controllers.de_mpc_long.Np``, not the ``controller.Np`` its
+class says).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib
+import inspect
 import math
+import pkgutil
 import re
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -26,12 +32,14 @@ from hydra.errors import InstantiationException
 from hydra.utils import get_object, instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
+import learners
 from controllers import BicycleMPCConfig, DEMPCConfig
 from harness.core.checks import is_number
 from harness.data.logs import LogsConfig
 from harness.data.store import DataConfig
 from harness.plant.params import SedanParams
 from harness.tasks.characterize import Characterize
+from learners import Learner
 
 T = TypeVar("T")
 
@@ -45,27 +53,38 @@ class SedanConfig(SedanParams):
     """
 
     _target_: str = "harness.plant.Sedan"
-    _convert_: str = "object"
+    _convert_: str = "object"  # the blocks reach Sedan as TireParams, ChassisParams, ... instances
 
 
-def schema_of(settings: type, convert: str = "all") -> type:
+def schema_of(settings: type, convert: str | None = "all", target: type | None = None) -> type:
     """A settings dataclass as a Hydra schema: the same fields and defaults, and ``_target_``
     naming the class, so its YAML files list only what differs from the defaults and every key
     can still be overridden (``controller.Np=60``). Not frozen, as Hydra merges overrides into
-    it; composing it checks the types, building it runs the class's own ``__post_init__``."""
+    it; composing it checks the types, building it runs the class's own ``__post_init__``.
+
+    ``target``: the class the node builds when it is not ``settings`` itself (a learner, which
+    takes its settings as keywords); ``convert`` None leaves ``_convert_`` out (Hydra's
+    default). A field holding a settings dataclass (``learner.training``) is a nested schema
+    with its own ``_target_``, so it is built as that dataclass and checked where it lives.
+    """
     hints = typing.get_type_hints(settings)
     names = [f.name for f in dataclasses.fields(settings)]
+    built = target or settings
     specs: list[tuple[str, Any, Any]] = [
-        ("_target_", str, dataclasses.field(default=f"{settings.__module__}.{settings.__name__}")),
-        ("_convert_", str, dataclasses.field(default=convert)),
+        ("_target_", str, dataclasses.field(default=f"{built.__module__}.{built.__qualname__}")),
     ]
+    if convert is not None:
+        specs.append(("_convert_", str, dataclasses.field(default=convert)))
     for f in dataclasses.fields(settings):
         factory: Any = f.default_factory
         default = factory() if f.default is dataclasses.MISSING else f.default
-        if isinstance(default, tuple | list):  # OmegaConf holds sequences as lists
-            specs.append((f.name, hints[f.name], _list_field(list(default))))
+        if dataclasses.is_dataclass(hints[f.name]):
+            nested = schema_of(hints[f.name], convert=None)
+            specs.append((f.name, nested, _nested_field(nested, default)))
+        elif isinstance(default, tuple | list):  # OmegaConf holds sequences as lists
+            specs.append((f.name, _schema_hint(hints[f.name]), _list_field(_as_lists(default))))
         else:
-            specs.append((f.name, hints[f.name], dataclasses.field(default=default)))
+            specs.append((f.name, _schema_hint(hints[f.name]), dataclasses.field(default=default)))
 
     def check(self: Any) -> None:
         settings(**{name: getattr(self, name) for name in names})
@@ -75,8 +94,30 @@ def schema_of(settings: type, convert: str = "all") -> type:
     )
 
 
+def _schema_hint(hint: Any) -> Any:
+    """``hint`` as OmegaConf types it: a ``Sequence[X]`` as ``list[X]`` (of lists, nested)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union):
+        options = [a for a in args if a is not type(None)]
+        single = len(options) == 1 and len(args) == 2
+        return typing.Optional[_schema_hint(options[0])] if single else hint  # noqa: UP045
+    if origin in (list, tuple, Sequence) and len(args) == 1:
+        return typing.List[_schema_hint(args[0])]  # type: ignore[misc]  # noqa: UP006
+    return hint
+
+
+def _as_lists(value: Any) -> Any:
+    return [_as_lists(v) for v in value] if isinstance(value, tuple | list) else value
+
+
 def _list_field(default: list[Any]) -> Any:
-    return dataclasses.field(default_factory=lambda: list(default))
+    return dataclasses.field(default_factory=lambda: _as_lists(default))
+
+
+def _nested_field(schema: type, default: Any) -> Any:
+    """A nested schema's default: the settings dataclass's default instance, field by field."""
+    values = {f.name: _as_lists(getattr(default, f.name)) for f in dataclasses.fields(default)}
+    return dataclasses.field(default_factory=lambda: schema(**values))
 
 
 def register_configs() -> None:
@@ -88,6 +129,25 @@ def register_configs() -> None:
     store.store(group="controller", name="de_mpc_schema", node=schema_of(DEMPCConfig))
     store.store(group="controller", name="bicycle_mpc_schema", node=schema_of(BicycleMPCConfig))
     store.store(group="task", name="characterize_schema", node=schema_of(Characterize))
+    for learner in learner_classes():  # built by the learner, which takes its settings
+        node = schema_of(learner.config_class, convert=None, target=learner)
+        store.store(group="learner", name=f"{learner.name}_schema", node=node)
+
+
+@functools.cache
+def learner_classes() -> tuple[type[Learner], ...]:
+    """Every learner class of the ``learners`` package, by name: each has a schema of its own,
+    ``<name>_schema`` (a new learner is its class and its YAML file, no list to extend)."""
+    for module in pkgutil.iter_modules(learners.__path__):
+        importlib.import_module(f"{learners.__name__}.{module.name}")
+    found: dict[str, Any] = {}
+    stack: list[Any] = [Learner]
+    while stack:
+        cls = stack.pop()
+        stack.extend(cls.__subclasses__())
+        if cls.__module__.startswith(f"{learners.__name__}.") and not inspect.isabstract(cls):
+            found.setdefault(cls.name, cls)
+    return tuple(found[name] for name in sorted(found))
 
 
 # Keys that hold the control period: plant, data, model and controller share one (the model
@@ -102,8 +162,8 @@ def validate(cfg: DictConfig) -> None:
     1. the dataclass of every structured node is built, so every ``__post_init__`` runs; keys
        added with ``+key=value`` bypass the schema at composition (Hydra opens the node for
        them) and ``OmegaConf.to_object`` would drop them silently: they are refused here;
-    2. every other ``_target_`` node but the task itself is built (cheap: learners build their
-       networks in ``fit``, controllers are settings until given a model);
+    2. every other ``_target_`` node but the task itself is built, after the ``_target_``
+       nodes it holds (cheap: references and the recorder are settings until used);
     3. every control period the task uses equals ``plant.control_period_s``.
 
     An extra controller named as the run's controller (``controller=de_mpc`` beside the
@@ -142,11 +202,23 @@ def _validate(node: DictConfig | ListConfig, path: str, in_schema: bool) -> None
             raise ValueError(f"{full_key} must be finite (got {child})")  # no key means NaN
         if isinstance(child, (DictConfig, ListConfig)):
             _validate(child, full_key, in_schema or structured)
-    if structured and not in_schema:
+    # A learner's settings are checked where it lives too (the pedal split's learner.inner), so
+    # that an error names its keys there, not under learner.
+    inner_learner = structured and in_schema and _builds_a_learner(schema)  # type: ignore[arg-type]
+    if structured and (not in_schema or inner_learner):
         try:
             OmegaConf.to_object(node)  # runs every __post_init__ of the block, innermost first
         except ValueError as error:
-            raise ValueError(_rekeyed(str(error), path, node)) from None
+            message = str(error)
+            if inner_learner and message.startswith("learner."):
+                message = path + message[len("learner") :]
+            raise ValueError(_rekeyed(message, path, node)) from None
+
+
+def _builds_a_learner(schema: type) -> bool:
+    """Whether a schema's ``_target_`` is a learner class (a schema of :func:`learner_classes`)."""
+    target = {f.name: f.default for f in dataclasses.fields(schema)}.get("_target_")
+    return any(target == f"{cls.__module__}.{cls.__qualname__}" for cls in learner_classes())
 
 
 def _not_checked_here(node: DictConfig | ListConfig, key: Any, full_key: str) -> bool:
@@ -160,7 +232,8 @@ def _not_checked_here(node: DictConfig | ListConfig, key: Any, full_key: str) ->
 
 
 def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
-    """Instantiate every ``_target_`` node below ``node`` that no structured schema covers."""
+    """Instantiate every ``_target_`` node below ``node`` that no structured schema covers, each
+    after the ``_target_`` nodes it holds: a failure is that of the node at its own key."""
     keys: list[Any] = list(node.keys()) if isinstance(node, DictConfig) else list(range(len(node)))
     for key in keys:
         full_key = f"{path}.{key}" if path else str(key)
@@ -170,39 +243,54 @@ def _build_targets(node: DictConfig | ListConfig, path: str) -> None:
         if not isinstance(child, (DictConfig, ListConfig)):
             continue
         structured = dataclasses.is_dataclass(OmegaConf.get_type(child))
-        # The task is built by the app, with the plant; the parts it holds are built here.
-        target = isinstance(child, DictConfig) and "_target_" in child and not structured
-        if target and full_key != "task":
-            _build(child, full_key)  # type: ignore[arg-type]
+        if structured:
             continue
-        if target:
-            _check_argument_types(child, full_key)  # type: ignore[arg-type]
-        if not structured:
-            _build_targets(child, full_key)
+        _build_targets(child, full_key)
+        # The task is built by the app, with the plant; the parts it holds are built here.
+        if isinstance(child, DictConfig) and "_target_" in child:
+            _check_argument_types(child, full_key)
+            if full_key != "task":
+                _build(child, full_key)
 
 
 def _build(node: DictConfig, path: str) -> None:
-    """Instantiate ``node``; its error, whichever nested block raised it, as one line naming
-    the full key."""
-    _check_argument_types(node, path)
+    """Instantiate ``node`` (the ``_target_`` nodes it holds were built before it); its error as
+    one line naming the key: a target that cannot be imported, a key its signature does not
+    take, or the target's own check."""
+    try:
+        target = get_object(str(node._target_))
+    except Exception as error:  # Hydra's: no such module or name
+        reason = _first_line(error.__cause__ or error)
+        raise ValueError(
+            f"{path}._target_ {node._target_!r} cannot be imported ({reason})"
+        ) from None
+    accepted = _keywords(target)
+    unknown = [str(k) for k in node if not str(k).startswith("_") and str(k) not in accepted]
+    if accepted and unknown:
+        raise ValueError(f"unknown key {path}.{unknown[0]}; known keys: {', '.join(accepted)}")
     try:
         instantiate(node)
-    except Exception as error:  # a config's own check, or a wrong keyword: both the user's
-        where, cause = path, error
-        while isinstance(cause, InstantiationException):
-            found = re.search(r"full_key: (\S+)", str(cause))
-            where = found.group(1) if found else where
-            if cause.__cause__ is None:
-                break
-            cause = cause.__cause__  # type: ignore[assignment]
-        if isinstance(cause, InstantiationException):  # Hydra's own (a target not found)
-            raise ValueError(f"{where}: {str(cause).splitlines()[0]}") from None
-        message = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
-        unknown = re.search(r"unexpected keyword argument '(\w+)'", message)
-        if isinstance(cause, TypeError) and unknown:
-            raise ValueError(f"unknown key {where}.{unknown.group(1)}") from None
-        target = OmegaConf.select(node, where[len(path) + 1 :]) if where != path else node
-        raise ValueError(_rekeyed(message, where, target)) from None
+    except Exception as error:  # a config's own check: the user's
+        cause = error.__cause__ if isinstance(error, InstantiationException) else error
+        message = _first_line(cause or error)
+        raise ValueError(_rekeyed(message, path, node)) from None
+
+
+def _keywords(target: Any) -> list[str]:
+    """The keywords ``target`` takes; empty when it takes any (``**kwargs``) or has no signature
+    Python can read."""
+    try:
+        parameters = inspect.signature(target).parameters.values()
+    except (TypeError, ValueError):
+        return []
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return []
+    named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return [p.name for p in parameters if p.kind in named]
+
+
+def _first_line(error: BaseException) -> str:
+    return str(error).splitlines()[0] if str(error) else type(error).__name__
 
 
 def _check_argument_types(node: DictConfig, path: str) -> None:
@@ -268,10 +356,10 @@ def _check_periods(cfg: DictConfig) -> None:
     task = OmegaConf.to_container(cfg.task, resolve=False)
     assert isinstance(task, dict)
     used = {"task": cfg.task}
+    groups = {"${" + str(name) + "}": str(name) for name in cfg if name != "plant"}
     for value in task.values():
-        group = re.fullmatch(r"\$\{(\w+)\}", value) if isinstance(value, str) else None
-        if group and group.group(1) in cfg and group.group(1) != "plant":
-            used[group.group(1)] = cfg[group.group(1)]
+        if isinstance(value, str) and value in groups:
+            used[groups[value]] = cfg[groups[value]]
     for path, node in used.items():
         for key, value in _periods(node, path):
             if not math.isclose(value, period, rel_tol=1e-9):

@@ -35,6 +35,8 @@ GROUPS: dict[str, str] = {
     "plant": "the simulated car the data comes from and the controllers drive",
     "data": "the driving data: collected from the plant, or read from logs",
     "learner": "the model fitted to the data",
+    "training": "a part of a trained learner's preset: how it trains "
+    "(`- /training@training: recipe`)",
     "controller": "the run's own controller (`tracking.*` in metrics.json)",
     "disturbance": "the disturbance estimator of an offset-free controller "
     "(`disturbance@controller.disturbance=<name>`)",
@@ -118,7 +120,7 @@ def _flatten(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
     if isinstance(node, Mapping) and len(node) > 0:
         for key, value in node.items():
             yield from _flatten(value, f"{prefix}.{key}" if prefix else str(key))
-    else:
+    elif prefix:  # a file that sets no key has none to list
         yield prefix, node
 
 
@@ -183,7 +185,7 @@ def _schemas() -> dict[str, type]:
     """The dataclasses behind the schemas ``harness.config`` stores, by their stored name."""
     from controllers.bicycle_mpc import BicycleMPCConfig
     from controllers.de_mpc import DEMPCConfig
-    from harness.config import SedanConfig
+    from harness.config import SedanConfig, learner_classes
     from harness.data.logs import LogsConfig
     from harness.data.store import DataConfig
     from harness.tasks.characterize import Characterize
@@ -195,6 +197,7 @@ def _schemas() -> dict[str, type]:
         "de_mpc_schema": DEMPCConfig,
         "bicycle_mpc_schema": BicycleMPCConfig,
         "characterize_schema": Characterize,
+        **{f"{learner.name}_schema": learner.config_class for learner in learner_classes()},
     }
 
 
@@ -221,8 +224,27 @@ def _notes(group: str, preset: str) -> dict[str, str]:
     cls = _settings_class(group, preset)
     notes: dict[str, str] = {k: v for k, v in field_comments(cls).items() if v} if cls else {}
     for path in reversed(_chain(group, preset)):
+        notes.update(_part_comments(path))
         notes.update({k: v for k, v in key_comments(path).items() if v})
     return notes
+
+
+def _part_comments(path: Path) -> dict[str, str]:
+    """The key comments of the parts a file composes (``- /training@training: recipe``), each
+    key under the package the part lands in."""
+    comments: dict[str, str] = {}
+    node = OmegaConf.load(path)
+    for entry in node.get("defaults", []) if isinstance(node, DictConfig) else []:
+        if not isinstance(entry, DictConfig):
+            continue
+        for name, option in entry.items():
+            group, _, package = str(name).removeprefix("override ").partition("@")
+            part = CONF_DIR / group.strip("/") / f"{option}.yaml"
+            if not group.startswith("/") or not part.exists():
+                continue
+            prefix = "" if package in ("", "_here_") else package + "."
+            comments.update({prefix + k: v for k, v in key_comments(part).items() if v})
+    return comments
 
 
 def _defaults() -> dict[str, str]:
@@ -249,16 +271,12 @@ def _group_section(group: str, about: str, default: str | None) -> list[str]:
     base_values = _composed(group, base, default is not None)
     notes = _notes(group, base)
     role = "the default" if base == default else "the first"
-    lines += [
-        f"### {group}={base}",
-        "",
-        f"{header(CONF_DIR / group / f'{base}.yaml')}",
-        "",
-        f"Every key ({role} preset):",
-        "",
-        "| key | value | what it is |",
-        "|---|---|---|",
-    ]
+    lines += [f"### {group}={base}", "", f"{header(CONF_DIR / group / f'{base}.yaml')}", ""]
+    if base_values:
+        lines += [f"Every key ({role} preset):", "", "| key | value | what it is |"]
+        lines.append("|---|---|---|")
+    else:
+        lines.append("It sets no key: every value is its schema's default.")
     lines += [f"| `{k}` | {_value(v)} | {notes.get(k, '')} |" for k, v in base_values.items()]
     for preset in presets:
         if preset == base:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
+from dataclasses import is_dataclass
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, ClassVar, Self
@@ -32,6 +33,7 @@ from harness.core import contracts
 from harness.core.contracts import STATE_NAMES
 from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
 from learners.model_file import INPUT_DIM, STATE_DIM, Dim, Shape, load, write
+from learners.settings import NoSettings, plain
 
 __all__ = [
     "INPUT_DIM",
@@ -50,10 +52,14 @@ class Learner(contracts.RunLearner, ABC):
     x_{k+1} = f(x_k, u_k) learned from episodes, saved to and loaded from one file format.
 
     Subclasses set ``name`` (their config-group name, used in messages and file names) and
-    keep their hyperparameters as constructor keywords, so that a config maps 1:1 to the code.
+    ``config_class``, the frozen dataclass of their settings (:mod:`learners.settings`; none by
+    default): the learner takes its fields as keywords (or in order), so that a config maps 1:1
+    to the code, and keeps them, checked, as ``config``.
     """
 
     name: ClassVar[str]
+    config_class: ClassVar[type] = NoSettings
+    config: Any
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -62,6 +68,11 @@ class Learner(contracts.RunLearner, ABC):
         )
         if not abstract and not isinstance(getattr(cls, "name", None), str):
             raise TypeError(f"{cls.__qualname__} must set the class attribute `name`")
+        if not is_dataclass(cls.config_class):
+            raise TypeError(f"{cls.__qualname__}.config_class must be its settings dataclass")
+
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        self.config = self.config_class(*args, **settings)
 
     @abstractmethod
     def fit(
@@ -131,8 +142,9 @@ class Learner(contracts.RunLearner, ABC):
 
     @property
     def hyperparameters(self) -> dict[str, Any]:
-        """The constructor keywords this learner was built with (what its config holds)."""
-        return dict(self._hyperparameters)
+        """The settings this learner was built with, as plain data (what its config holds and
+        its model file keeps)."""
+        return plain(self.config)
 
     @property
     def fit_summary(self) -> dict[str, Any]:
@@ -141,7 +153,6 @@ class Learner(contracts.RunLearner, ABC):
 
     # -- for subclasses -------------------------------------------------------------------------
 
-    _hyperparameters: dict[str, Any]
     # What the model was trained on, as its file said (plant, dataset; empty for a model fitted
     # here, or a file from before it was recorded): the caller compares it with its own run.
     provenance_: Mapping[str, Any] = MappingProxyType({})

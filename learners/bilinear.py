@@ -38,6 +38,7 @@ The model is not lifted-linear: an MPC that reads only ``A_`` and ``B_`` (the ha
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -47,11 +48,12 @@ from harness.core.checks import choice
 from harness.core.contracts import Dynamics
 from harness.core.episode import MinMaxNormalizer
 from learners.base import INPUT_DIM, STATE_DIM, Shape, check_rollout_args
-from learners.dictionaries import Dictionary
-from learners.edmd import EDMD
+from learners.edmd import EDMD, EDMDConfig
+from learners.settings import settle
 
 __all__ = [
     "BilinearEDMD",
+    "BilinearEDMDConfig",
     "BilinearOperator",
     "bilinear_matrices",
     "bilinear_regression_rows",
@@ -149,10 +151,23 @@ class BilinearOperator:
         return self.A_ + np.einsum("...j,jnk->...nk", vbar, self.H_)
 
 
+@dataclass(frozen=True)
+class BilinearEDMDConfig(EDMDConfig):
+    """Bilinear EDMD's settings (``conf/learner/bilinear_edmd.yaml``): EDMD's, and the prior."""
+
+    ridge: Any = 1e-4  # Tikhonov weight relative to the mean squared one-step residual
+    # What the ridge shrinks A toward: identity (z+ = z) or zero.
+    ridge_prior: str = "identity"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        settle(self, ridge_prior=choice("learner.ridge_prior", self.ridge_prior, RIDGE_PRIORS))
+
+
 class BilinearEDMD(BilinearOperator, EDMD):
     """EDMD with the bilinear input term (see the module docstring).
 
-    Args:
+    Settings (:class:`BilinearEDMDConfig`):
         dictionary, ridge, include_constant, seed: As :class:`~learners.edmd.EDMD`'s.
         ridge_prior: What the ridge shrinks A toward: ``identity`` or ``zero``.
 
@@ -161,20 +176,14 @@ class BilinearEDMD(BilinearOperator, EDMD):
     """
 
     name: ClassVar[str] = "bilinear_edmd"
+    config_class: ClassVar[type] = BilinearEDMDConfig
+    config: BilinearEDMDConfig
 
     H_: np.ndarray
 
-    def __init__(
-        self,
-        dictionary: Dictionary | Mapping[str, Any] | None = None,
-        ridge: float = 1e-4,
-        include_constant: bool = True,
-        seed: int = 0,
-        ridge_prior: str = "identity",
-    ) -> None:
-        super().__init__(dictionary, ridge, include_constant, seed)
-        self.ridge_prior = choice("learner.ridge_prior", ridge_prior, RIDGE_PRIORS)
-        self._hyperparameters["ridge_prior"] = self.ridge_prior
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.ridge_prior = self.config.ridge_prior
 
     def predict(self, x0: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         n, m = self.C_.shape[0], self.B_.shape[1]

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -49,12 +49,17 @@ from learners.bilinear import (
     bilinear_regression_rows,
     bilinear_rollout,
 )
-from learners.deep_edmd import BilinearTerm, DeepEDMD, _Objective
+from learners.deep_edmd import BilinearTerm, DeepEDMD, DeepEDMDConfig, _Objective
 from learners.linalg import ridge_lstsq, row_chunks
 from learners.nets import Dense, LayerSpec
-from learners.training import block
+from learners.settings import block, settle
 
-__all__ = ["BilinearDeepEDMD", "StabilityPenalty", "stability_penalty"]
+__all__ = [
+    "BilinearDeepEDMD",
+    "BilinearDeepEDMDConfig",
+    "StabilityPenalty",
+    "stability_penalty",
+]
 
 REFITS = ("lstsq", "none")
 
@@ -68,7 +73,9 @@ class StabilityPenalty:
     eigenvalues are allowed up to (dimensionless, per 10 ms step; 1 is the unit circle).
     """
 
+    # Loss per unit of |eigenvalue| above radius (data-loss units); 0: off.
     weight: float = 0.0
+    # Allowed |eigenvalue| per model period (1.0: per second too; r per step = r_per_s ** period_s).
     radius: float = 1.0
 
     def __post_init__(self) -> None:
@@ -136,10 +143,46 @@ class _BilinearObjective(_Objective):
         return terms
 
 
+@dataclass(frozen=True)
+class BilinearDeepEDMDConfig(DeepEDMDConfig):
+    """Bilinear Deep EDMD's settings (``conf/learner/bilinear_deep_edmd.yaml``): Deep EDMD's,
+    then the bilinear term's."""
+
+    # C z, what a bilinear MPC predicts with; decoder: the paper's read-out.
+    prediction_output: str = "linear"
+    # H inside the multi-step losses; false: Deep EDMD's training, bit for bit.
+    bilinear_training: bool = True
+    # lstsq: A, B, H refitted on the lifted data after training | none.
+    bilinear_refit: str = "lstsq"
+    # Of the refit, relative to the mean squared one-step residual (as edmd's ridge).
+    bilinear_ridge: float = 1e-4
+    ridge_prior: str = "identity"  # the refit shrinks A toward the identity (z+ = z), not zero
+    # MDK-Net's penalty on eigenvalues outside the circle (arXiv 2503.03002).
+    stability: StabilityPenalty = field(default_factory=StabilityPenalty)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for key in ("refit_koopman_lstsq", "refit_inputs_lstsq"):
+            require(
+                not getattr(self, key),
+                f"learner.{key}",
+                "false (bilinear_refit: lstsq refits the bilinear operator)",
+                True,
+            )
+        settle(
+            self,
+            bilinear_training=boolean("learner.bilinear_training", self.bilinear_training),
+            bilinear_refit=choice("learner.bilinear_refit", self.bilinear_refit, REFITS),
+            bilinear_ridge=non_negative("learner.bilinear_ridge", self.bilinear_ridge),
+            ridge_prior=choice("learner.ridge_prior", self.ridge_prior, RIDGE_PRIORS),
+            stability=block(StabilityPenalty, self.stability, "stability"),
+        )
+
+
 class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
     """Deep EDMD with a bilinear operator, trained through and/or refitted (module docstring).
 
-    Args:
+    Settings (:class:`BilinearDeepEDMDConfig`):
         bilinear_training: Train H with the network, the bilinear term inside the losses
             (false: Deep EDMD's training, bit for bit).
         bilinear_refit: ``lstsq``: replace A, B, H by the bilinear least squares on the lifted
@@ -148,44 +191,23 @@ class BilinearDeepEDMD(BilinearOperator, DeepEDMD):
             residual (as EDMD's ``ridge``).
         ridge_prior: What the ridge shrinks A toward: ``identity`` (default) or ``zero``.
         stability: :class:`StabilityPenalty` keys (``weight`` 0: off).
-        **deep_edmd: Every :class:`~learners.deep_edmd.DeepEDMD` argument.
+        Every other: as :class:`~learners.deep_edmd.DeepEDMD`'s (``prediction_output``
+        defaults to ``linear`` here).
     """
 
     name: ClassVar[str] = "bilinear_deep_edmd"
+    config_class: ClassVar[type] = BilinearDeepEDMDConfig
+    config: BilinearDeepEDMDConfig
 
     H_: np.ndarray
 
-    def __init__(
-        self,
-        bilinear_training: bool = True,
-        bilinear_refit: str = "lstsq",
-        bilinear_ridge: float = 1e-4,
-        ridge_prior: str = "identity",
-        stability: StabilityPenalty | Mapping[str, float] | None = None,
-        **deep_edmd: Any,
-    ) -> None:
-        deep_edmd.setdefault("prediction_output", "linear")
-        super().__init__(**deep_edmd)
-        for key in ("refit_koopman_lstsq", "refit_inputs_lstsq"):
-            require(
-                not getattr(self, key),
-                f"learner.{key}",
-                "false (bilinear_refit: lstsq refits the bilinear operator)",
-                True,
-            )
-        boolean("learner.bilinear_training", bilinear_training)
-        self.bilinear_training = bilinear_training
-        self.bilinear_refit = choice("learner.bilinear_refit", bilinear_refit, REFITS)
-        self.bilinear_ridge = non_negative("learner.bilinear_ridge", bilinear_ridge)
-        self.ridge_prior = choice("learner.ridge_prior", ridge_prior, RIDGE_PRIORS)
-        self.stability = block(StabilityPenalty, stability, "stability")
-        self._hyperparameters.update(
-            bilinear_training=self.bilinear_training,
-            bilinear_refit=self.bilinear_refit,
-            bilinear_ridge=self.bilinear_ridge,
-            ridge_prior=ridge_prior,
-            stability=asdict(self.stability),
-        )
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.bilinear_training = self.config.bilinear_training
+        self.bilinear_refit = self.config.bilinear_refit
+        self.bilinear_ridge = self.config.bilinear_ridge
+        self.ridge_prior = self.config.ridge_prior
+        self.stability = self.config.stability
 
     @classmethod
     def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:

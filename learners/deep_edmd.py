@@ -30,7 +30,7 @@ where z_i = lift(x_i) and K^[i] z_0 = A^i z_0 + sum_{j<i} A^{i-1-j} B v_j (eq. f
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
@@ -50,10 +50,18 @@ from learners.nets import (
     mlp_forward,
     mlp_specs,
 )
-from learners.trained import TrainedLearner, check_loss_scales
-from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
+from learners.settings import block, settle
+from learners.trained import TrainedLearner, settle_trained
+from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms
 
-__all__ = ["BilinearTerm", "DeepEDMD", "LossWeights", "deep_edmd_loss_terms", "deep_edmd_step"]
+__all__ = [
+    "BilinearTerm",
+    "DeepEDMD",
+    "DeepEDMDConfig",
+    "LossWeights",
+    "deep_edmd_loss_terms",
+    "deep_edmd_step",
+]
 
 _LSTSQ_RIDGE = 1e-10  # relative ridge of the optional least-squares refit of A, B (and of C)
 # The read-out check of checkpoint selection (DeepEDMD.input_effects): 16 validation states,
@@ -387,10 +395,70 @@ class _Objective:
         return batch_mean_terms(terms, self.learner.alpha.data_terms())
 
 
+def _widths(key: str, widths: Sequence[int]) -> tuple[int, ...]:
+    return tuple(integer(key, w, 1) for w in widths)
+
+
+@dataclass(frozen=True)
+class DeepEDMDConfig:
+    """Deep EDMD's settings (``conf/learner/deep_edmd.yaml``); the defaults are the paper's."""
+
+    lifted_dim: int = 10  # L
+    horizon: int = 41  # p, steps per training window at the data's period (the paper's)
+    encoder_hidden: Sequence[int] = (32, 64)  # encoder [n 32 64 L L]
+    decoder_hidden: Sequence[int] = (128, 64, 32)  # decoder [L+n 128 64 32 n]
+    # z = [x; phi_e(x)], C = [I 0]; false: z = phi_e(x), C by least squares.
+    lifted_includes_state: bool = True
+    alpha: LossWeights = field(default_factory=LossWeights)  # the paper's alpha_1..6
+    prediction_output: str = "decoder"  # decoder (paper) | linear (C z, what the MPC sees)
+    # True: A, B by least squares on the lifted data after training.
+    refit_koopman_lstsq: bool = False
+    # True: B alone by least squares after training, with the trained A (ours; paper: no).
+    refit_inputs_lstsq: bool = False
+    # [vx m/s, vy m/s, r rad/s] an error counts in (ours); null: normalized units (the paper).
+    loss_scales: Sequence[float] | None = None
+    # Robustness experiment: extra layer redrawn each step.
+    random_layer: RandomLayerConfig = field(default_factory=RandomLayerConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+
+    def __post_init__(self) -> None:
+        includes_state = boolean("learner.lifted_includes_state", self.lifted_includes_state)
+        alpha = block(LossWeights, self.alpha, "alpha")
+        if alpha.readout and not includes_state:
+            raise ValueError(
+                "learner.alpha.readout trains x = C z with C = [I 0]: it needs "
+                "learner.lifted_includes_state=true (or alpha.readout=0)"
+            )
+        refit_koopman = boolean("learner.refit_koopman_lstsq", self.refit_koopman_lstsq)
+        refit_inputs = boolean("learner.refit_inputs_lstsq", self.refit_inputs_lstsq)
+        require(
+            not (refit_inputs and refit_koopman),
+            "learner.refit_inputs_lstsq",
+            "false when learner.refit_koopman_lstsq is true (that refit fits B with A; "
+            "learner=deep_edmd_lstsq sets both)",
+            refit_inputs,
+        )
+        settle(
+            self,
+            lifted_dim=integer("learner.lifted_dim", self.lifted_dim, 1),
+            encoder_hidden=tuple(
+                integer("learner.encoder_hidden", w, 1) for w in self.encoder_hidden
+            ),
+            decoder_hidden=tuple(
+                integer("learner.decoder_hidden", w, 1) for w in self.decoder_hidden
+            ),
+            alpha=alpha,
+            prediction_output=choice(
+                "learner.prediction_output", self.prediction_output, ("decoder", "linear")
+            ),
+        )
+        settle_trained(self)
+
+
 class DeepEDMD(TrainedLearner, KoopmanLearner):
     """Deep EDMD (see the module docstring for the model, the loss and the reading of the paper).
 
-    Args:
+    Settings (:class:`DeepEDMDConfig`):
         lifted_dim: L, the encoder's output width.
         horizon: p, the steps of every training window.
         encoder_hidden: Hidden widths of the encoder before its two L-wide layers.
@@ -411,64 +479,21 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
     """
 
     name: ClassVar[str] = "deep_edmd"
+    config_class: ClassVar[type] = DeepEDMDConfig
+    config: DeepEDMDConfig
 
-    def __init__(
-        self,
-        lifted_dim: int = 10,
-        horizon: int = 41,
-        encoder_hidden: Sequence[int] = (32, 64),
-        decoder_hidden: Sequence[int] = (128, 64, 32),
-        lifted_includes_state: bool = True,
-        alpha: LossWeights | Mapping[str, float] | None = None,
-        prediction_output: str = "decoder",
-        refit_koopman_lstsq: bool = False,
-        refit_inputs_lstsq: bool = False,
-        loss_scales: Sequence[float] | None = None,
-        random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
-        training: TrainingConfig | Mapping[str, Any] | None = None,
-    ) -> None:
-        super().__init__(horizon=horizon, random_layer=random_layer, training=training)
-        self.lifted_dim = integer("learner.lifted_dim", lifted_dim, 1)
-        self.encoder_hidden = [integer("learner.encoder_hidden", w, 1) for w in encoder_hidden]
-        self.decoder_hidden = [integer("learner.decoder_hidden", w, 1) for w in decoder_hidden]
-        boolean("learner.lifted_includes_state", lifted_includes_state)
-        self.lifted_includes_state = lifted_includes_state
-        self.alpha = block(LossWeights, alpha, "alpha")
-        if self.alpha.readout and not lifted_includes_state:
-            raise ValueError(
-                "learner.alpha.readout trains x = C z with C = [I 0]: it needs "
-                "learner.lifted_includes_state=true (or alpha.readout=0)"
-            )
-        self.prediction_output = choice(
-            "learner.prediction_output", prediction_output, ("decoder", "linear")
-        )
-        self.refit_koopman_lstsq = bool(refit_koopman_lstsq)
-        boolean("learner.refit_inputs_lstsq", refit_inputs_lstsq)
-        require(
-            not (refit_inputs_lstsq and self.refit_koopman_lstsq),
-            "learner.refit_inputs_lstsq",
-            "false when learner.refit_koopman_lstsq is true (that refit fits B with A; "
-            "learner=deep_edmd_lstsq sets both)",
-            refit_inputs_lstsq,
-        )
-        self.refit_inputs_lstsq = refit_inputs_lstsq
-        self.loss_scales = check_loss_scales(loss_scales)
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.lifted_dim = self.config.lifted_dim
+        self.encoder_hidden = list(self.config.encoder_hidden)
+        self.decoder_hidden = list(self.config.decoder_hidden)
+        self.lifted_includes_state = self.config.lifted_includes_state
+        self.alpha = self.config.alpha
+        self.prediction_output = self.config.prediction_output
+        self.refit_koopman_lstsq = self.config.refit_koopman_lstsq
+        self.refit_inputs_lstsq = self.config.refit_inputs_lstsq
         self._random_layer_width = self.lifted_dim
         self._encoder_np: NumpyMLP | None = None  # the trained encoder for lift (_for_control)
-        self._hyperparameters = {
-            "lifted_dim": self.lifted_dim,
-            "horizon": self.horizon,
-            "encoder_hidden": list(self.encoder_hidden),
-            "decoder_hidden": list(self.decoder_hidden),
-            "lifted_includes_state": self.lifted_includes_state,
-            "alpha": asdict(self.alpha),
-            "prediction_output": self.prediction_output,
-            "refit_koopman_lstsq": self.refit_koopman_lstsq,
-            "refit_inputs_lstsq": self.refit_inputs_lstsq,
-            "loss_scales": None if self.loss_scales is None else list(self.loss_scales),
-            "random_layer": asdict(self.random_layer),
-            "training": asdict(self.training),
-        }
 
     # -- network ---------------------------------------------------------------------------------
 
@@ -577,8 +602,11 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
         self.refit_koopman_lstsq, self.refit_inputs_lstsq = True, False  # B is refitted too
         self.prediction_output = "linear"
-        self._hyperparameters.update(
-            refit_koopman_lstsq=True, refit_inputs_lstsq=False, prediction_output="linear"
+        self.config = replace(
+            self.config,
+            refit_koopman_lstsq=True,
+            refit_inputs_lstsq=False,
+            prediction_output="linear",
         )
         self._read_matrices(train)
         return self
@@ -596,7 +624,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         A = views["koopman.A.weight"].double().numpy()
         views["koopman.B.weight"].copy_(torch.from_numpy(self._inputs_lstsq(train, A)))
         self.refit_inputs_lstsq = True
-        self._hyperparameters.update(refit_inputs_lstsq=True)
+        self.config = replace(self.config, refit_inputs_lstsq=True)
         self._read_matrices(train)
         return self
 

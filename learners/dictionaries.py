@@ -113,6 +113,12 @@ def dictionary_from(value: Dictionary | Mapping[str, Any] | None) -> Dictionary:
     values = dict(value.hyperparameters if isinstance(value, Dictionary) else value)
     target = str(values.pop("_target_", ""))
     cls = package_class(target, Dictionary, "a dictionary class", "learner.dictionary._target_")
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(set(map(str, values)) - set(names))
+    if unknown:
+        raise ValueError(
+            f"unknown key learner.dictionary.{unknown[0]}; known keys: {', '.join(names)}"
+        )
     return cls(**values)
 
 

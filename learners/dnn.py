@@ -27,21 +27,22 @@ the region of its point. The controller reads a float64 NumPy copy of the networ
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from harness.core.checks import integer, non_negative
+from harness.core.checks import boolean, integer, non_negative
 from harness.core.contracts import Dynamics
 from harness.core.episode import Episode
 from learners.base import Shape
 from learners.nets import Dense, LayerSpec, NumpyMLP, mlp_apply, mlp_forward, mlp_specs
-from learners.trained import TrainedLearner, check_loss_scales
-from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms, block
+from learners.settings import block, settle
+from learners.trained import TrainedLearner, settle_trained
+from learners.training import RandomLayerConfig, TrainingConfig, batch_mean_terms
 
-__all__ = ["DNN", "DNNLossWeights", "dnn_loss_terms", "dnn_step"]
+__all__ = ["DNN", "DNNConfig", "DNNLossWeights", "dnn_loss_terms", "dnn_step"]
 
 
 @dataclass(frozen=True)
@@ -228,10 +229,39 @@ class _Objective:
         return batch_mean_terms(terms, {"prediction": beta.prediction, "inf": beta.inf})
 
 
+@dataclass(frozen=True)
+class DNNConfig:
+    """The DNN's settings (``conf/learner/dnn.yaml``); the defaults are the paper's Table."""
+
+    # Hidden widths of M: [n+m 32 64 128 128 64 32 n] (the paper's).
+    hidden: Sequence[int] = (32, 64, 128, 128, 64, 32)
+    horizon: int = 41  # p, steps per training window at the data's period (the paper's)
+    beta: DNNLossWeights = field(default_factory=DNNLossWeights)  # the paper's beta_1..3
+    # x_{k+1} = x_k + D M(x_k, u_k), D the increments' std (ours); false: x_{k+1} = M (paper).
+    residual: bool = False
+    # [vx m/s, vy m/s, r rad/s] an error counts in (ours); null: normalized units (the paper).
+    loss_scales: Sequence[float] | None = None
+    # Robustness experiment: extra layer redrawn each step.
+    random_layer: RandomLayerConfig = field(default_factory=RandomLayerConfig)
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+
+    def __post_init__(self) -> None:
+        hidden = tuple(integer("learner.hidden", w, 1) for w in self.hidden)
+        if not hidden:
+            raise ValueError("learner.hidden must list at least one width (got [])")
+        settle(
+            self,
+            hidden=hidden,
+            beta=block(DNNLossWeights, self.beta, "beta"),
+            residual=boolean("learner.residual", self.residual),
+        )
+        settle_trained(self)
+
+
 class DNN(TrainedLearner):
     """The paper's DNN (see the module docstring).
 
-    Args:
+    Settings (:class:`DNNConfig`):
         hidden: Hidden widths (paper: 32, 64, 128, 128, 64, 32).
         horizon: p, the steps of every training window.
         beta: Loss weights prediction, inf, l2 (the paper's beta_1..3).
@@ -248,37 +278,18 @@ class DNN(TrainedLearner):
     """
 
     name: ClassVar[str] = "dnn"
+    config_class: ClassVar[type] = DNNConfig
+    config: DNNConfig
     dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
     C_: np.ndarray  # (n, n) = I: the lifted state is the normalized state
     _mlp: NumpyMLP
 
-    def __init__(
-        self,
-        hidden: Sequence[int] = (32, 64, 128, 128, 64, 32),
-        horizon: int = 41,
-        beta: DNNLossWeights | Mapping[str, float] | None = None,
-        residual: bool = False,
-        loss_scales: Sequence[float] | None = None,
-        random_layer: RandomLayerConfig | Mapping[str, Any] | None = None,
-        training: TrainingConfig | Mapping[str, Any] | None = None,
-    ) -> None:
-        super().__init__(horizon=horizon, random_layer=random_layer, training=training)
-        self.hidden = [integer("learner.hidden", w, 1) for w in hidden]
-        if not self.hidden:
-            raise ValueError("learner.hidden must list at least one width (got [])")
-        self.beta = block(DNNLossWeights, beta, "beta")
-        self.residual = bool(residual)
-        self.loss_scales = check_loss_scales(loss_scales)
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.hidden = list(self.config.hidden)
+        self.beta = self.config.beta
+        self.residual = self.config.residual
         self._random_layer_width = self.hidden[-1]
-        self._hyperparameters = {
-            "hidden": list(self.hidden),
-            "horizon": self.horizon,
-            "beta": asdict(self.beta),
-            "residual": self.residual,
-            "loss_scales": None if self.loss_scales is None else list(self.loss_scales),
-            "random_layer": asdict(self.random_layer),
-            "training": asdict(self.training),
-        }
 
     def _specs(self, n: int, m: int) -> list[LayerSpec]:
         specs = mlp_specs("model", [n + m, *self.hidden, n], "linear")

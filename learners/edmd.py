@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
 
 from harness.core.budget import check_memory
-from harness.core.checks import integer
+from harness.core.checks import boolean, integer
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
@@ -34,12 +35,13 @@ from learners.base import (
     check_fit_data,
     check_rollout_args,
 )
-from learners.dictionaries import Dictionary, RandomFeatures, ThinPlateRBF, dictionary_from
+from learners.dictionaries import RandomFeatures, ThinPlateRBF, dictionary_from
 from learners.linalg import Triangle, ridge_weights, row_chunks
+from learners.settings import settle
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EDMD", "linear_rollout"]
+__all__ = ["EDMD", "EDMDConfig", "linear_rollout"]
 
 _CHUNK_ROWS = 20_000
 
@@ -56,10 +58,35 @@ def linear_rollout(a: np.ndarray, b: np.ndarray, z0: np.ndarray, v: np.ndarray) 
     return z
 
 
+@dataclass(frozen=True)
+class EDMDConfig:
+    """EDMD's settings (``conf/learner/edmd.yaml``, ``elm_edmd.yaml``), checked when built."""
+
+    # The observables phi(x) (learners/dictionaries.py): a Dictionary, or its block with
+    # ``_target_``; null: 100 thin-plate RBFs, centres ~ N(mean, std^2) of the training states.
+    dictionary: Any = None
+    # Tikhonov weight relative to the mean squared one-step residual: one number, or a list
+    # to choose from by the validation drives' rollouts (OmegaConf has no float | list).
+    ridge: Any = 1e-10
+    # The observable 1 (min-max normalization makes a linear plant affine).
+    include_constant: bool = True
+    seed: int = 0  # of the dictionary's draw
+
+    def __post_init__(self) -> None:
+        ridges = ridge_weights(self.ridge)
+        settle(
+            self,
+            dictionary=dictionary_from(self.dictionary),
+            ridge=tuple(ridges) if len(ridges) > 1 else ridges[0],
+            include_constant=boolean("learner.include_constant", self.include_constant),
+            seed=integer("learner.seed", self.seed, 0),
+        )
+
+
 class EDMD(KoopmanLearner):
     """EDMD on a fixed dictionary of observables (see the module docstring).
 
-    Args:
+    Settings (:class:`EDMDConfig`):
         dictionary: The observables phi (a :class:`~learners.dictionaries.Dictionary`, or its
             ``hyperparameters`` with ``_target_``); None gives 100 thin-plate RBFs.
         ridge: Tikhonov weight relative to the mean squared one-step residual; with several,
@@ -71,25 +98,16 @@ class EDMD(KoopmanLearner):
     """
 
     name: ClassVar[str] = "edmd"
+    config_class: ClassVar[type] = EDMDConfig
+    config: EDMDConfig
 
-    def __init__(
-        self,
-        dictionary: Dictionary | Mapping[str, Any] | None = None,
-        ridge: float | Sequence[float] = 1e-10,
-        include_constant: bool = True,
-        seed: int = 0,
-    ) -> None:
-        self.dictionary = dictionary_from(dictionary)
-        self.ridges = ridge_weights(ridge)
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.dictionary = dictionary_from(self.config.dictionary)  # its own, to draw and fit
+        self.ridges = ridge_weights(self.config.ridge)
         self.ridge_ = self.ridges[0]
-        self.include_constant = bool(include_constant)
-        self.seed = integer("learner.seed", seed, 0)
-        self._hyperparameters: dict[str, Any] = {
-            "dictionary": self.dictionary.hyperparameters,
-            "ridge": self.ridges if len(self.ridges) > 1 else self.ridges[0],
-            "include_constant": self.include_constant,
-            "seed": self.seed,
-        }
+        self.include_constant = self.config.include_constant
+        self.seed = self.config.seed
 
     @classmethod
     def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:

@@ -43,13 +43,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
 
 from harness.core.budget import check_memory
-from harness.core.checks import integer, non_negative
+from harness.core.checks import boolean, integer, non_negative
 from harness.core.contracts import Dynamics
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import (
@@ -61,20 +62,56 @@ from learners.base import (
     check_fit_data,
     check_rollout_args,
 )
-from learners.dictionaries import Dictionary, ThinPlateRBF, dictionary_from
+from learners.dictionaries import ThinPlateRBF, dictionary_from
 from learners.linalg import Triangle, ridge_weights, row_chunks
+from learners.settings import settle
 
-__all__ = ["InputEDMD"]
+__all__ = ["InputEDMD", "InputEDMDConfig"]
 
 log = logging.getLogger(__name__)
 
 _CHUNK_ROWS = 5_000  # rows of observables at a time: K·(n + m) floats of temporaries each
 
 
+@dataclass(frozen=True)
+class InputEDMDConfig:
+    """Input EDMD's settings (``conf/learner/input_edmd.yaml``), checked when built."""
+
+    # The observables phi(y) of y = [x_n; v] (a Dictionary with a jacobian, or its block with
+    # ``_target_``); null: 500 thin-plate RBFs centred on distinct training points (y).
+    dictionary: Any = None
+    # Tikhonov weight(s) relative to the mean squared residual; with several, the one whose
+    # open-loop rollouts of the validation drives are best (OmegaConf has no float | list).
+    ridge: Any = (1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2)
+    include_constant: bool = True  # the observable 1
+    seed: int = 0  # of the centres' draw
+    # The observables see (x, u) clipped to the training box, widened by this much on each
+    # side (normalized); null: unclipped.
+    observable_margin: float | None = 0.0
+
+    def __post_init__(self) -> None:
+        ridges = ridge_weights(self.ridge)
+        margin = self.observable_margin
+        settle(
+            self,
+            dictionary=dictionary_from(
+                self.dictionary
+                if self.dictionary is not None
+                else ThinPlateRBF(500, center_draw="samples")
+            ),
+            ridge=tuple(ridges) if len(ridges) > 1 else ridges[0],
+            include_constant=boolean("learner.include_constant", self.include_constant),
+            seed=integer("learner.seed", self.seed, 0),
+            observable_margin=(
+                None if margin is None else non_negative("learner.observable_margin", margin)
+            ),
+        )
+
+
 class InputEDMD(Learner):
     """EDMD on observables of (state, input), re-lifted every step (module docstring).
 
-    Args:
+    Settings (:class:`InputEDMDConfig`):
         dictionary: The observables phi of y = [x_n; v] (a
             :class:`~learners.dictionaries.Dictionary` with a ``jacobian``, or its
             hyperparameters); None gives 500 thin-plate RBFs centred on data points.
@@ -92,36 +129,19 @@ class InputEDMD(Learner):
     """
 
     name: ClassVar[str] = "input_edmd"
+    config_class: ClassVar[type] = InputEDMDConfig
+    config: InputEDMDConfig
     dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
 
     C_: np.ndarray
 
-    def __init__(
-        self,
-        dictionary: Dictionary | Mapping[str, Any] | None = None,
-        ridge: float | Sequence[float] = (1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2),
-        include_constant: bool = True,
-        seed: int = 0,
-        observable_margin: float | None = 0.0,
-    ) -> None:
-        self.dictionary = dictionary_from(
-            dictionary if dictionary is not None else ThinPlateRBF(500, center_draw="samples")
-        )
-        self.ridges = ridge_weights(ridge)
-        self.include_constant = bool(include_constant)
-        self.seed = integer("learner.seed", seed, 0)
-        self.margin = (
-            None
-            if observable_margin is None
-            else non_negative("learner.observable_margin", observable_margin)
-        )
-        self._hyperparameters: dict[str, Any] = {
-            "dictionary": self.dictionary.hyperparameters,
-            "ridge": self.ridges if len(self.ridges) > 1 else self.ridges[0],
-            "include_constant": self.include_constant,
-            "seed": self.seed,
-            "observable_margin": self.margin,
-        }
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.dictionary = dictionary_from(self.config.dictionary)  # its own, to draw and fit
+        self.ridges = ridge_weights(self.config.ridge)
+        self.include_constant = self.config.include_constant
+        self.seed = self.config.seed
+        self.margin = self.config.observable_margin
 
     @classmethod
     def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:

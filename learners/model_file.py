@@ -23,6 +23,7 @@ import torch
 from harness.core import contracts
 from harness.core.episode import MinMaxNormalizer
 from harness.core.files import write_atomic
+from learners.training import RUN_SETTINGS
 
 if TYPE_CHECKING:  # the base class writes through this module: no import at run time
     from learners.base import Learner
@@ -172,7 +173,11 @@ def package_class(name: str, kind: type, what: str, source: str) -> Any:
     module_name, _, class_name = name.rpartition(".")
     if not module_name.startswith("learners."):
         raise ValueError(f"{source} names class {name!r} outside the learners package")
-    cls = getattr(importlib.import_module(module_name), class_name, None)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError:
+        raise ValueError(f"{source} names {name!r}, whose module cannot be imported") from None
+    cls = getattr(module, class_name, None)
     if not (isinstance(cls, type) and issubclass(cls, kind)):
         raise ValueError(f"{source} names {name!r}, which is not {what}")
     return cls
@@ -261,19 +266,6 @@ def _normalizer_problem(values: Mapping[str, Any], n: int, m: int) -> str | None
         if below.size:
             return f"normalizer '{high}' is below '{low}' at ({int(below[0])},)"
     return None
-
-
-# Training settings that say how long or how a model was trained, not which model it is: a
-# model file trained with another budget still is the configured learner, and a training may
-# resume from its checkpoint with them changed (learners/trained.py).
-RUN_SETTINGS = (
-    "max_steps",
-    "max_epochs",
-    "patience",
-    "progress",
-    "num_threads",
-    "checkpoint_every_steps",
-)
 
 
 def check_same_learner(

@@ -9,7 +9,7 @@ tests check). Every prediction table has its row (``prediction.persistence`` in 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Self
+from typing import ClassVar, Self
 
 import numpy as np
 import torch
@@ -24,9 +24,6 @@ class Persistence(Learner):
     """x_{k+1} = x_k under any inputs (module docstring)."""
 
     name: ClassVar[str] = "persistence"
-
-    def __init__(self) -> None:
-        self._hyperparameters: dict[str, Any] = {}
 
     def fit(
         self, train: Sequence[Episode], validation: Sequence[Episode], normalizer: MinMaxNormalizer

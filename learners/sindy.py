@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
 import numpy as np
@@ -31,8 +32,9 @@ from harness.core.checks import integer, non_negative, positive, require
 from harness.core.contracts import STATE_NAMES, Dynamics
 from harness.core.episode import Episode, MinMaxNormalizer
 from learners.base import Dim, Learner, Shape, check_fit_data, check_rollout_args
+from learners.settings import settle
 
-__all__ = ["SINDyC", "monomial_exponents"]
+__all__ = ["SINDyC", "SINDyConfig", "monomial_exponents"]
 
 
 def monomial_exponents(variables: int, degree: int) -> np.ndarray:
@@ -47,10 +49,41 @@ def monomial_exponents(variables: int, degree: int) -> np.ndarray:
     return np.array(rows)
 
 
+@dataclass(frozen=True)
+class SINDyConfig:
+    """SINDy's settings (``conf/learner/sindy.yaml``), checked when built."""
+
+    degree: int = 2  # 21 terms for 3 states and 2 inputs (3: 56, its rollouts diverge)
+    # In units of its state's RMS one-step change per unit RMS of its term: one number, or a
+    # list chosen on the validation rollouts; 0 keeps every term (OmegaConf has no float | list).
+    threshold: Any = (0.0, 0.03, 0.1, 0.3)
+    ridge: float = 1e-8  # on unit-RMS columns
+    iterations: int = 10  # threshold-and-refit rounds at most
+    # theta sees (x, u) clipped to the training box widened by this (normalized); null:
+    # unclipped.
+    observable_margin: float | None = 0.0
+
+    def __post_init__(self) -> None:
+        threshold, margin = self.threshold, self.observable_margin
+        thresholds = [threshold] if not isinstance(threshold, Sequence) else list(threshold)
+        require(len(thresholds) > 0, "learner.threshold", "a number or a non-empty list", threshold)
+        checked = tuple(non_negative("learner.threshold", value) for value in thresholds)
+        settle(
+            self,
+            degree=integer("learner.degree", self.degree),
+            threshold=checked if len(checked) > 1 else checked[0],
+            ridge=positive("learner.ridge", self.ridge),
+            iterations=integer("learner.iterations", self.iterations),
+            observable_margin=(
+                None if margin is None else non_negative("learner.observable_margin", margin)
+            ),
+        )
+
+
 class SINDyC(Learner):
     """Sparse polynomial step model (see the module docstring).
 
-    Args:
+    Settings (:class:`SINDyConfig`):
         degree: Highest total degree of the monomials of [x_n; v].
         threshold: A coefficient is dropped below this, in units of its state's RMS one-step
             change per unit RMS of its term; one number or a list to choose from on validation.
@@ -62,34 +95,18 @@ class SINDyC(Learner):
     """
 
     name: ClassVar[str] = "sindy"
+    config_class: ClassVar[type] = SINDyConfig
+    config: SINDyConfig
     dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
 
-    def __init__(
-        self,
-        degree: int = 2,
-        threshold: float | Sequence[float] = (0.0, 0.03, 0.1, 0.3),
-        ridge: float = 1e-8,
-        iterations: int = 10,
-        observable_margin: float | None = 0.0,
-    ) -> None:
-        self.degree = integer("learner.degree", degree)
-        thresholds = [threshold] if not isinstance(threshold, Sequence) else list(threshold)
-        require(len(thresholds) > 0, "learner.threshold", "a number or a non-empty list", threshold)
-        self.thresholds = [non_negative("learner.threshold", value) for value in thresholds]
-        self.ridge = positive("learner.ridge", ridge)
-        self.iterations = integer("learner.iterations", iterations)
-        self.margin = (
-            None
-            if observable_margin is None
-            else non_negative("learner.observable_margin", observable_margin)
-        )
-        self._hyperparameters: dict[str, Any] = {
-            "degree": self.degree,
-            "threshold": self.thresholds if len(self.thresholds) > 1 else self.thresholds[0],
-            "ridge": self.ridge,
-            "iterations": self.iterations,
-            "observable_margin": self.margin,
-        }
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        threshold = self.config.threshold
+        self.degree = self.config.degree
+        self.thresholds = list(threshold) if isinstance(threshold, tuple) else [threshold]
+        self.ridge = self.config.ridge
+        self.iterations = self.config.iterations
+        self.margin = self.config.observable_margin
 
     # -- fitting ----------------------------------------------------------------------------
 

@@ -78,8 +78,9 @@ from harness.core.episode import (
     input_features,
 )
 from learners.base import Learner, Shape, check_fit_data, check_rollout_args
+from learners.settings import settle
 
-__all__ = ["SingleTrack", "coefficient_names", "form_of"]
+__all__ = ["SingleTrack", "SingleTrackConfig", "coefficient_names", "form_of"]
 
 LATERAL = ("front_per_mass", "rear_per_mass", "steer_per_mass")  # C_f/m, C_r/m, C_f/(m i_s)
 YAW = ("mass_per_inertia",)  # m / I_z
@@ -185,10 +186,42 @@ def form_of(
     )
 
 
+@dataclass(frozen=True)
+class SingleTrackConfig:
+    """The single-track model's settings (``conf/learner/single_track.yaml``): only what a person
+    measures with a tape and axle scales (the default sedan's, models/mjcf/sedan.xml's header);
+    both axle distances null: identified from the data."""
+
+    cg_to_front_m: float | None = 1.15  # a: CG to front axle (wheelbase x rear axle load share)
+    cg_to_rear_m: float | None = 1.55  # b: CG to rear axle
+    mass_kg: float = 1500.0  # only converts the identified per-mass values to N/rad and kg m^2
+    # Lateral terms use max(vx, this); slower samples stay out of the fit.
+    min_speed_mps: float = 3.0
+    max_lateral_accel_mps2: float = 4.0  # lateral and yaw fits in the tyres' linear range (0.4 g)
+
+    def __post_init__(self) -> None:
+        front, rear = self.cg_to_front_m, self.cg_to_rear_m
+        if (front is None) != (rear is None):
+            raise ValueError(
+                "learner.cg_to_front_m and learner.cg_to_rear_m must both be given (measured) "
+                "or both be null (identified from the data)"
+            )
+        settle(
+            self,
+            cg_to_front_m=None if front is None else positive("learner.cg_to_front_m", front),
+            cg_to_rear_m=None if rear is None else positive("learner.cg_to_rear_m", rear),
+            mass_kg=positive("learner.mass_kg", self.mass_kg),
+            min_speed_mps=positive("learner.min_speed_mps", self.min_speed_mps),
+            max_lateral_accel_mps2=positive(
+                "learner.max_lateral_accel_mps2", self.max_lateral_accel_mps2
+            ),
+        )
+
+
 class SingleTrack(Learner):
     """The linear single-track model plus a first-order longitudinal channel (module docstring).
 
-    Args:
+    Settings (:class:`SingleTrackConfig`):
         cg_to_front_m, cg_to_rear_m: a and b, measured (tape and axle scales); both null:
             identified from the data.
         mass_kg: measured; used only to report C_f, C_r (N/rad) and I_z (kg m²).
@@ -202,33 +235,16 @@ class SingleTrack(Learner):
     """
 
     name: ClassVar[str] = "single_track"
+    config_class: ClassVar[type] = SingleTrackConfig
+    config: SingleTrackConfig
     dynamics: ClassVar[Dynamics] = "nonlinear"  # DE-MPC linearises it along its plan
 
-    def __init__(
-        self,
-        cg_to_front_m: float | None = 1.15,
-        cg_to_rear_m: float | None = 1.55,
-        mass_kg: float = 1500.0,
-        min_speed_mps: float = 3.0,
-        max_lateral_accel_mps2: float = 4.0,
-    ) -> None:
-        if (cg_to_front_m is None) != (cg_to_rear_m is None):
-            raise ValueError(
-                "learner.cg_to_front_m and learner.cg_to_rear_m must both be given (measured) "
-                "or both be null (identified from the data)"
-            )
-        self.a = None if cg_to_front_m is None else positive("learner.cg_to_front_m", cg_to_front_m)
-        self.b = None if cg_to_rear_m is None else positive("learner.cg_to_rear_m", cg_to_rear_m)
-        self.mass_kg = positive("learner.mass_kg", mass_kg)
-        self.min_speed = positive("learner.min_speed_mps", min_speed_mps)
-        self.max_lateral_accel = positive("learner.max_lateral_accel_mps2", max_lateral_accel_mps2)
-        self._hyperparameters: dict[str, Any] = {
-            "cg_to_front_m": self.a,
-            "cg_to_rear_m": self.b,
-            "mass_kg": self.mass_kg,
-            "min_speed_mps": self.min_speed,
-            "max_lateral_accel_mps2": self.max_lateral_accel,
-        }
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.a, self.b = self.config.cg_to_front_m, self.config.cg_to_rear_m
+        self.mass_kg = self.config.mass_kg
+        self.min_speed = self.config.min_speed_mps
+        self.max_lateral_accel = self.config.max_lateral_accel_mps2
         self.C_ = np.eye(3)
         self.substeps_ = 1
         self._maps: tuple[MinMaxNormalizer, _Maps] | None = None

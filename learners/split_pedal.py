@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar, Self, cast
 
 import numpy as np
@@ -37,6 +38,7 @@ from learners.base import (
     check_rollout_args,
 )
 from learners.model_file import learner_class
+from learners.settings import plain, settle
 
 __all__ = ["SplitPedal", "pedal_column", "split_inputs", "split_normalizer", "split_pedal"]
 
@@ -105,29 +107,56 @@ def split_normalizer(normalizer: MinMaxNormalizer, column: int) -> MinMaxNormali
     )
 
 
+def _inner_learner(value: Any) -> Learner:
+    """``learner.inner`` as a learner: built (Hydra's ``_target_``), or its settings with
+    ``_target_`` (its schema's node, a mapping), built here."""
+    if isinstance(value, Learner):
+        return value
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    if not (isinstance(value, Mapping) and "_target_" in value):
+        raise ValueError(
+            f"learner.inner must be a learner config (a _target_ in learners), got {value!r:.80}"
+        )
+    settings = {str(k): v for k, v in value.items() if not str(k).startswith("_")}
+    return learner_class(str(value["_target_"]), "learner.inner._target_")(**settings)
+
+
+@dataclass(frozen=True)
+class SplitPedalConfig:
+    """The pedal split's settings (``conf/learner/*_split.yaml``): the learner fitted on the
+    two inputs, and the input to split."""
+
+    inner: Any = None  # a learner, or its config with _target_ (deep_edmd@inner)
+    pedal: str = "pedal"  # the signed throttle/brake input to split
+
+    def __post_init__(self) -> None:
+        inner = _inner_learner(self.inner)
+        if isinstance(inner, SplitPedal):
+            raise ValueError("learner.inner is a split_pedal learner already: split the pedal once")
+        if not isinstance(self.pedal, str) or not self.pedal:
+            raise ValueError(f"learner.pedal must name the signed pedal input (got {self.pedal!r})")
+        settle(self, inner=inner)
+
+
 class SplitPedal(Learner):
     """``inner`` fitted on throttle and brake, used as a model of the pedal (module docstring)."""
 
     name: ClassVar[str] = "split_pedal"
+    config_class: ClassVar[type] = SplitPedalConfig
+    config: SplitPedalConfig
     dynamics: ClassVar[Dynamics] = "nonlinear"  # piecewise linear in the pedal: DE-MPC linearises
 
-    def __init__(self, inner: Learner, pedal: str = "pedal") -> None:
-        if not isinstance(inner, Learner):
-            raise ValueError(
-                "learner.inner must be a learner config (a _target_ in learners), "
-                f"got {inner!r:.80}"
-            )
-        if isinstance(inner, SplitPedal):
-            raise ValueError("learner.inner is a split_pedal learner already: split the pedal once")
-        if not isinstance(pedal, str) or not pedal:
-            raise ValueError(f"learner.pedal must name the signed pedal input (got {pedal!r})")
-        self.inner = inner
-        self.pedal = pedal
-        self._hyperparameters: dict[str, Any] = {
-            "inner_class": f"{type(inner).__module__}.{type(inner).__qualname__}",
-            "inner": inner.hyperparameters,
-            "pedal": pedal,
-        }
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.inner: Learner = self.config.inner
+        self.pedal = self.config.pedal
+
+    @property
+    def hyperparameters(self) -> dict[str, Any]:
+        """The inner learner's class and settings, and the pedal."""
+        inner = type(self.inner)
+        return {"inner_class": f"{inner.__module__}.{inner.__qualname__}", **plain(self.config)}
 
     @classmethod
     def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:

@@ -23,12 +23,24 @@ from learners.base import (
     check_fit_data,
     check_rollout_args,
 )
-from learners.model_file import RUN_SETTINGS
 from learners.nets import Dense, FlatParameters, LayerSpec, random_layer
-from learners.training import History, Objective, RandomLayerConfig, TrainingConfig, block
+from learners.settings import block, settle
+from learners.training import (
+    RUN_SETTINGS,
+    History,
+    Objective,
+    RandomLayerConfig,
+    TrainingConfig,
+)
 from learners.windows import WindowData
 
-__all__ = ["TrainedLearner", "check_loss_scales", "check_per_state", "state_loss_weights"]
+__all__ = [
+    "TrainedLearner",
+    "check_loss_scales",
+    "check_per_state",
+    "settle_trained",
+    "state_loss_weights",
+]
 
 
 def check_loss_scales(scales: Sequence[float] | None) -> tuple[float, ...] | None:
@@ -67,6 +79,18 @@ def state_loss_weights(
     return torch.from_numpy((w / w.mean()).astype(np.float32))
 
 
+def settle_trained(settings: Any) -> None:
+    """Check and keep the settings every trained learner has: ``horizon``, ``loss_scales``,
+    ``random_layer`` and ``training`` (from its settings' ``__post_init__``)."""
+    settle(
+        settings,
+        horizon=integer("learner.horizon", settings.horizon, 1),
+        loss_scales=check_loss_scales(settings.loss_scales),
+        random_layer=block(RandomLayerConfig, settings.random_layer, "random_layer"),
+        training=block(TrainingConfig, settings.training, "training"),
+    )
+
+
 def _is_size(value: Any) -> bool:
     """An int, or a list of ints (widths): a size a user can make smaller (not a flag, not a
     list of scales)."""
@@ -89,18 +113,14 @@ class TrainedLearner(Learner):
     params_: FlatParameters
     history_: History
     checkpoint_dir: Path | None
-    loss_scales: tuple[float, ...] | None = None  # set by a subclass that weighs its states
+    loss_scales: tuple[float, ...] | None
 
-    def __init__(
-        self,
-        *,
-        horizon: int,
-        random_layer: RandomLayerConfig | Mapping[str, Any] | None,
-        training: TrainingConfig | Mapping[str, Any] | None,
-    ) -> None:
-        self.horizon = integer("learner.horizon", horizon, 1)
-        self.random_layer = block(RandomLayerConfig, random_layer, "random_layer")
-        self.training = block(TrainingConfig, training, "training")
+    def __init__(self, *args: Any, **settings: Any) -> None:
+        super().__init__(*args, **settings)
+        self.horizon: int = self.config.horizon
+        self.random_layer: RandomLayerConfig = self.config.random_layer
+        self.training: TrainingConfig = self.config.training
+        self.loss_scales = self.config.loss_scales
         self.checkpoint_dir = None
 
     # -- subclass hooks --------------------------------------------------------------------------

@@ -46,7 +46,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -63,9 +63,11 @@ from harness.core.checks import (
 )
 from harness.core.files import write_atomic
 from learners.nets import FlatParameters
+from learners.settings import block
 from learners.windows import WindowData
 
 __all__ = [
+    "RUN_SETTINGS",
     "History",
     "Objective",
     "RandomLayerConfig",
@@ -89,7 +91,10 @@ _TRAILER_BYTES = len(_CHECKSUM_MARKER) + 64 + 1
 
 log = logging.getLogger(__name__)
 
-_Block = TypeVar("_Block")
+
+# The mark of a training setting that says how long or how a model was trained, not which model
+# it is (RUN_SETTINGS).
+_RUN = {"run": True}
 
 
 @dataclass(frozen=True)
@@ -115,23 +120,31 @@ class TrainingConfig:
     """
 
     batch_size: int = 64
-    lr: float = 1e-4
-    max_steps: int | None = 100_000
-    max_epochs: int | None = None
-    patience: int = 20
+    lr: float = 1e-4  # Adam's, constant (the paper's)
+    max_steps: int | None = field(default=100_000, metadata=_RUN)  # the paper trains ~1e5 batches
+    max_epochs: int | None = field(default=None, metadata=_RUN)
+    # Validations without improvement before early stopping.
+    patience: int = field(default=20, metadata=_RUN)
     eval_every_steps: int = 1000
-    checkpoint_every_steps: int = 1000
+    checkpoint_every_steps: int = field(default=1000, metadata=_RUN)
     seed: int = 0
-    num_threads: int | None = None
-    progress: bool = True
+    # null: the job's threads (conf/config.yaml: 1); a number: for training alone.
+    num_threads: int | None = field(default=None, metadata=_RUN)
+    progress: bool = field(default=True, metadata=_RUN)
+    # window_loss (the paper's) | rollout: checkpoint by whole-drive validation rollouts (ours).
     selection: str = "window_loss"
+    # m/s, m/s, rad/s: what an RMSE of vx, vy, r counts in the rollout score.
     rollout_scales: Sequence[float] = (1.0, 0.1, 0.05)
+    # constant (the paper's) | cosine: linear warm-up, then cosine decay to lr_final (ours).
     lr_schedule: str = "constant"
     warmup_steps: int = 0
     lr_final: float = 0.0
-    grad_clip_norm: float | None = None
+    grad_clip_norm: float | None = None  # clip the gradient's 2-norm (null: no clipping, the paper)
+    # [[p, batches], ...]: shorter windows first, then learner.horizon (null: none, the paper).
     curriculum: Sequence[Sequence[int]] | None = None
-    initial_state_noise: float = 0.0
+    initial_state_noise: float = 0.0  # std (normalized units) added to each window's first state
+    # Ours, off: validate, keep, return the weights' moving average (d per batch); no gain on
+    # data=default (docs/findings/training_recipe.md).
     average_decay: float | None = None
 
     def __post_init__(self) -> None:
@@ -243,6 +256,12 @@ class TrainingConfig:
         return horizon
 
 
+# Training settings that say how long or how a model was trained, not which model it is (the
+# fields marked _RUN): a model file trained with another budget still is the configured learner,
+# and a training may resume from its checkpoint with them changed (learners/trained.py).
+RUN_SETTINGS = tuple(f.name for f in fields(TrainingConfig) if f.metadata.get("run"))
+
+
 @dataclass(frozen=True)
 class RandomLayerConfig:
     """The paper's robustness experiment: an extra hidden layer redrawn at every training step.
@@ -257,25 +276,6 @@ class RandomLayerConfig:
     def __post_init__(self) -> None:
         boolean("learner.random_layer.enabled", self.enabled)
         non_negative("learner.random_layer.std", self.std)
-
-
-def block(cls: type[_Block], value: _Block | Mapping[str, Any] | None, key: str) -> _Block:
-    """``learner.<key>`` as a ``cls``: built already (Hydra's ``_target_``), a plain mapping (a
-    model file's hyperparameters, a test) or None (the defaults). Unknown keys fail in one line."""
-    if isinstance(value, cls):
-        return value
-    if value is None:
-        return cls()
-    if not isinstance(value, Mapping):
-        raise ValueError(f"learner.{key} must be a mapping of settings (got {value!r})")
-    values = {k: v for k, v in value.items() if k != "_target_"}
-    names = [f.name for f in fields(cls)]  # type: ignore[arg-type]
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise ValueError(
-            f"learner.{key}.{unknown[0]} is not a key of {cls.__name__} ({', '.join(names)})"
-        )
-    return cls(**values)
 
 
 class Objective(Protocol):

@@ -9,10 +9,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -32,6 +35,7 @@ from harness.tasks.characterize import Characterize
 from harness.tasks.collect import Collect
 from harness.tasks.pipeline import Pipeline
 from learners import Learner
+from learners.training import TrainingConfig
 from tests.helpers import compose
 
 SCHEMAS = {"plant": SedanParams, "data": (DataConfig, LogsConfig)}
@@ -157,7 +161,7 @@ def test_experiment_paper_is_a_sweep_of_every_learner_over_three_seeds_at_both_h
     assert params.seed == "0,1,2"
     # Every learner of conf/learner/, the physics baseline and the bilinear ones included: the
     # sweep names no learner, it globs the group, and the report resolves the glob as Hydra does.
-    assert params.learner == "glob(*)"
+    assert params.learner == "glob(*,exclude=*_schema)"
     OmegaConf.save(cfg, tmp_path / "multirun.yaml")
     jobs = sweep_jobs(tmp_path / "multirun.yaml")
     assert jobs is not None
@@ -231,6 +235,7 @@ BUILDS: dict[str, type | tuple[type, ...]] = {
     "disturbance": DisturbanceEstimator,
     "horizon": DEMPCConfig,
     "tracking": DEMPCConfig,
+    "training": TrainingConfig,
 }
 
 
@@ -253,6 +258,9 @@ def test_every_config_file_composes_validates_and_builds(group: str, name: str) 
     elif group in ("horizon", "tracking"):  # a part of a controller preset
         cfg = compose(f"{group}@controller={name}", as_app=True)
         node = cfg.controller
+    elif group == "training":  # a part of a trained learner's preset
+        cfg = compose("learner=dnn", f"training@learner.training={name}", as_app=True)
+        node = cfg.learner.training
     else:
         logs = group == "data" and "logs_schema" in (CONF_DIR / "data" / f"{name}.yaml").read_text()
         cfg = compose(f"{group}={name}", *(["data.path=."] if logs else []), as_app=True)
@@ -286,3 +294,72 @@ def test_a_controller_preset_is_a_few_lines_built_from_parts(preset: str) -> Non
     ]
     assert len(lines) <= 10, f"{preset}.yaml has {len(lines)} lines of YAML"
     assert _defaults_depth("controller", preset) <= 2, f"{preset}.yaml builds on too many levels"
+
+
+def _schema_of_file(group: str, name: str) -> str | None:
+    """The schema a preset composes, itself or through the presets of its group it builds on."""
+    for entry in OmegaConf.load(CONF_DIR / group / f"{name}.yaml").get("defaults", []):
+        if isinstance(entry, str) and entry.endswith("_schema"):
+            return entry
+        if isinstance(entry, str) and (CONF_DIR / group / f"{entry}.yaml").exists():
+            found = _schema_of_file(group, entry)
+            if found is not None:
+                return found
+    return None
+
+
+SCHEMA_FILES = [(g, n) for g, n in ALL_CONFIGS if "/" not in g and _schema_of_file(g, n)]
+
+
+def _leaves(node: object, prefix: str = "") -> dict[str, object]:
+    if isinstance(node, dict) and node:
+        found: dict[str, object] = {}
+        for key, value in node.items():
+            found.update(_leaves(value, f"{prefix}.{key}" if prefix else str(key)))
+        return found
+    return {prefix: node} if prefix else {}
+
+
+def _at(node: object, key: str) -> object:
+    """The value at a dotted key of nested dicts, unresolved (``${seed}`` as written)."""
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return "<absent>"
+        node = node[part]
+    return node
+
+
+@pytest.fixture(scope="module")
+def conf_copy(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    copy = tmp_path_factory.mktemp("conf") / "conf"
+    shutil.copytree(CONF_DIR, copy)
+    return copy
+
+
+@pytest.mark.parametrize(("group", "name"), SCHEMA_FILES, ids=[f"{g}/{n}" for g, n in SCHEMA_FILES])
+def test_a_preset_with_a_schema_lists_only_what_differs(
+    group: str, name: str, conf_copy: Path
+) -> None:
+    """Every key a preset sets changes what it composes to: its schema's defaults (and the
+    presets and parts it builds on) hold the rest, so a setting's value is written once."""
+    path = conf_copy / group / f"{name}.yaml"
+    written = path.read_text()
+    own = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    assert isinstance(own, dict)
+    defaults = own.pop("defaults", None)
+    package = written.splitlines()[0] if written.startswith("# @package") else ""
+
+    def composed() -> dict[str, object]:
+        with initialize_config_dir(config_dir=str(conf_copy), version_base="1.3"):
+            cfg = hydra_compose(config_name="config", overrides=[f"{group}={name}"])
+        node = OmegaConf.to_container(cfg, resolve=False)
+        return node if package else node[group]  # type: ignore[index, return-value]
+
+    try:
+        path.write_text(f"{package}\n" + OmegaConf.to_yaml({"defaults": defaults or []}))
+        base = composed()
+    finally:
+        path.write_text(written)
+    preset = composed()
+    same = [key for key in _leaves(own) if _at(base, key) == _at(preset, key)]
+    assert not same, f"conf/{group}/{name}.yaml sets {same} to what its defaults give already"

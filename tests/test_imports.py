@@ -151,6 +151,7 @@ ALLOWED: dict[str, set[str]] = {
         "harness.plant",
         "harness.data",
         "harness.tasks",
+        "learners",
         "controllers",
     },
     # The config reference page: reads conf/ and the schemas' dataclasses (docs tooling).

@@ -193,14 +193,19 @@ def sweep_jobs(multirun: Path) -> list[tuple[str, dict[str, str]]] | None:
     """Every job a sweep launches: its directory's name and its overrides as
     :func:`parse_overrides` gives them. ``None`` where that cannot be known from ``multirun``
     (another sweeper, a damaged file). A sweep over a glob of a config group
-    (``experiment=paper``'s ``learner: glob(*)``) is resolved against ``conf/``, as Hydra did."""
+    (``experiment=paper``'s ``learner: glob(*)``) is resolved against the files of ``conf/``, as
+    Hydra did: the schemas that the app stores beside them (``edmd_schema``) are no options."""
     try:
         hydra = OmegaConf.load(multirun).hydra
         if hydra.sweeper._target_.rsplit(".", 1)[-1] != BasicSweeper.__name__:
             return None
         params = hydra.sweeper.get("params") or {}
         lines = [f"{k}={v}" for k, v in params.items()] + list(hydra.overrides.task)
-        loader = ConfigLoaderImpl(config_search_path=create_config_search_path(str(CONF_DIR)))
+        search_path = create_config_search_path(str(CONF_DIR))
+        search_path.config_search_path = [  # type: ignore[attr-defined]
+            element for element in search_path.get_path() if element.provider != "schema"
+        ]
+        loader = ConfigLoaderImpl(config_search_path=search_path)
         parser = OverridesParser.create(config_loader=loader)
         (batch,) = BasicSweeper.split_arguments(parser.parse_overrides(lines), None)
         naming = hydra.job.config.override_dirname
