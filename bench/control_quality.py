@@ -217,13 +217,16 @@ def pedal_slopes(learner: str, seeds: Sequence[int], speed_mps: float = 22.2) ->
         plant_row.append(acceleration(np.array(states)[:, 0]))
     lines.append("| plant | " + " | ".join(f"{a:+.2f}" for a in plant_row) + " |")
     for seed in seeds:
-        (path,) = MODELS.glob(f"{learner}_seed{seed}_*.pt")
-        model = load(path)
-        row = []
-        for pedal in PEDALS:
-            inputs = np.tile([0.0, pedal], (50, 1))
-            row.append(acceleration(model.predict(np.array([speed_mps, 0.0, 0.0]), inputs)[:, 0]))
-        lines.append(f"| {learner} seed {seed} | " + " | ".join(f"{a:+.2f}" for a in row) + " |")
+        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):  # one per dataset
+            model = load(path)
+            row = []
+            for pedal in PEDALS:
+                inputs = np.tile([0.0, pedal], (50, 1))
+                x0 = np.array([speed_mps, 0.0, 0.0])
+                row.append(acceleration(model.predict(x0, inputs)[:, 0]))
+            data = path.stem.rsplit("_", 1)[-1]
+            cells = " | ".join(f"{a:+.2f}" for a in row)
+            lines.append(f"| {learner} seed {seed} (data {data}) | {cells} |")
     return "\n".join(lines)
 
 
