@@ -15,7 +15,8 @@ the lane change's verdict (max deviation m, cones), the tracking RMSE (vx m/s, y
 and ``tracking…quality``: steering reversals per minute, throttle-brake changes (a count, the
 per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
 each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
-at 80 km/h, the plant against each fitted model (the models of the arms).
+at 80 km/h, the plant against each fitted model (the models of the arms; an arm with another data
+setting, such as ``data.pedal_gains``, has a dataset key and models of its own).
 The findings of docs/findings/smooth_driving.md ran on this. Run arms two at a time on two
 cores (one thread each).
 """
