@@ -15,7 +15,8 @@ the lane change's verdict (max deviation m, cones), the tracking RMSE (vx m/s, y
 and ``tracking…quality``: steering reversals per minute, throttle-brake changes (a count, the
 per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
 each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
-at 80 km/h, the plant against each fitted model (the models of the arms).
+at 80 km/h, the plant against each fitted model (the models of the arms; an arm with another data
+setting, such as ``data.pedal_gains``, has a dataset key and models of its own).
 The findings of docs/findings/smooth_driving.md ran on this. Run arms two at a time on two
 cores (one thread each).
 """
@@ -218,13 +219,16 @@ def pedal_slopes(learner: str, seeds: Sequence[int], speed_mps: float = 22.2) ->
         plant_row.append(acceleration(np.array(states)[:, 0]))
     lines.append("| plant | " + " | ".join(f"{a:+.2f}" for a in plant_row) + " |")
     for seed in seeds:
-        (path,) = MODELS.glob(f"{learner}_seed{seed}_*.pt")
-        model = load(path)
-        row = []
-        for pedal in PEDALS:
-            inputs = np.tile([0.0, pedal], (50, 1))
-            row.append(acceleration(model.predict(np.array([speed_mps, 0.0, 0.0]), inputs)[:, 0]))
-        lines.append(f"| {learner} seed {seed} | " + " | ".join(f"{a:+.2f}" for a in row) + " |")
+        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):  # one per dataset
+            model = load(path)
+            row = []
+            for pedal in PEDALS:
+                inputs = np.tile([0.0, pedal], (50, 1))
+                x0 = np.array([speed_mps, 0.0, 0.0])
+                row.append(acceleration(model.predict(x0, inputs)[:, 0]))
+            data = path.stem.rsplit("_", 1)[-1]
+            cells = " | ".join(f"{a:+.2f}" for a in row)
+            lines.append(f"| {learner} seed {seed} (data {data}) | {cells} |")
     return "\n".join(lines)
 
 

@@ -49,7 +49,7 @@ from harness.core.checks import (
     require,
 )
 from harness.core.contracts import COMPUTE_DELAYS, Model
-from harness.core.episode import MinMaxNormalizer
+from harness.core.episode import SEDAN_INPUTS, MinMaxNormalizer, is_sedan
 from harness.core.limits import BRAKE_MAX_MPA, STEER_WHEEL_LIMIT_DEG, THROTTLE_MAX
 
 __all__ = ["DEMPC", "MAX_HORIZON_S", "DEMPCConfig"]
@@ -220,18 +220,22 @@ class DEMPCConfig:
 
     def increment_limits(self, normalizer: MinMaxNormalizer) -> np.ndarray:
         """(m,) each input's increment limit per step in the model's normalized units; the
-        pedal's is the tighter of the throttle's and the brake's on the signed scale."""
+        pedal's is the tighter of the throttle's and the brake's on the signed scale (they
+        differ by 1 %). With the sedan's pedal in other units (``data.pedal_gains``) they differ
+        more (in acceleration units at 80 km/h the brake's is 11x the throttle's): the looser,
+        so that braking is not slowed below its own limit."""
         to_v = normalizer.inputs
         origin = to_v(np.zeros(INPUTS))
+        steering = to_v(np.array([self.steer_wheel_increment_deg, 0.0]))[0] - origin[0]
+        channels = normalizer.channels
+        if is_sedan(channels) and channels[1] != SEDAN_INPUTS[1]:
+            throttle = to_v(np.array([0.0, self.throttle_increment]))[1] - origin[1]
+            brake = origin[1] - to_v(np.array([0.0, -self.brake_increment_mpa]))[1]
+            return np.array([steering, max(throttle, brake)])
         pedal_step = min(
             self.throttle_increment / THROTTLE_MAX, self.brake_increment_mpa / BRAKE_MAX_MPA
         )
-        return np.array(
-            [
-                to_v(np.array([self.steer_wheel_increment_deg, 0.0]))[0] - origin[0],
-                to_v(np.array([0.0, pedal_step * THROTTLE_MAX]))[1] - origin[1],
-            ]
-        )
+        return np.array([steering, to_v(np.array([0.0, pedal_step * THROTTLE_MAX]))[1] - origin[1]])
 
     def qp_settings(self, normalizer: MinMaxNormalizer) -> dict[str, Any]:
         """The states QP's keywords (CondensedQP's) in the model's normalized units."""

@@ -76,6 +76,7 @@ from harness.core.episode import (
     InputChannel,
     MinMaxNormalizer,
     input_features,
+    is_sedan,
 )
 from learners.base import Learner, Shape, check_fit_data, check_rollout_args
 from learners.settings import settle
@@ -390,7 +391,7 @@ class SingleTrack(Learner):
         """Logs of another car fitted with the sedan's measured geometry and mass: say so."""
         own = {"cg_to_front_m": self.a, "cg_to_rear_m": self.b, "mass_kg": self.mass_kg}
         defaults = [key for key, value in own.items() if value == SEDAN_GEOMETRY[key]]
-        if tuple(channels) == SEDAN_INPUTS or not defaults:
+        if is_sedan(channels) or not defaults:
             return
         log.warning(
             "single_track: these inputs are not the sedan's, but %s %s the sedan's (%s): set "

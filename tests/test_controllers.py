@@ -561,3 +561,24 @@ def test_a_short_closed_loop_on_the_sedan_runs_and_reports(quick_model_and_episo
     held = np.sqrt(np.mean((reference - reference[0]) ** 2, axis=0))
     assert np.all(rmse < 0.5 * held), (rmse, held)
     assert run.predicted.shape == (200, 60, 3) and metrics["horizon"] == {"Np": 60, "Nc": 50}
+
+
+def test_the_pedal_increment_limit_keeps_the_brakes_in_other_pedal_units() -> None:
+    """On the signed scale one pedal limit is both sides' (0.18 MPa and 0.004 throttle, within
+    1 %); with the pedal in other units (``data.pedal_gains``) the looser of the two: the
+    brake's 0.18 MPa a step, not slowed to the throttle's."""
+    from harness.core.episode import MinMaxNormalizer, sedan_inputs
+
+    config = DEMPCConfig()
+    for gains, throttle in ((None, 0.18 / 9.1 * 0.2), ((3.3, 0.83), 0.18 * 0.83 / 3.3)):
+        channels = sedan_inputs(gains)
+        low, high = (
+            np.array([c.feature(u) for c, u in zip(channels, v, strict=True)])
+            for v in ([-450.0, -9.1], [450.0, 0.2])
+        )
+        normalizer = MinMaxNormalizer(np.zeros(3), np.ones(3), low, high, channels)
+        pedal = config.increment_limits(normalizer)[1]
+        origin = normalizer.inputs(np.zeros(2))[1]
+        braked = origin - normalizer.inputs(np.array([0.0, -0.18]))[1]
+        opened = normalizer.inputs(np.array([0.0, throttle]))[1] - origin
+        assert np.isclose(pedal, braked) and np.isclose(pedal, opened, rtol=1e-4)

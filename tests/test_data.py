@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from harness.core.contracts import Plant
-from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
+from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
 from harness.data import coverage
 from harness.data.collect import reference_speeds
 from harness.data.coverage import sawtooth_frames, steering_reversals
@@ -130,6 +130,9 @@ def test_bad_data_values_name_their_key(tmp_path: Path) -> None:
         tiny(tmp_path, start_speed_mps=[20.0, 5.0])
     with pytest.raises(ValueError, match=r"data\.start_speed_mps .*max_speed_mps \(33"):
         tiny(tmp_path, start_speed_mps=[0.0, 40.0])
+    for gains in ([0.0, 1.0], [1.0], [3.3, -0.83], [float("inf"), 1.0]):
+        with pytest.raises(ValueError, match=r"data\.pedal_gains must be \[throttle, brake\]"):
+            tiny(tmp_path, pedal_gains=gains)
 
 
 def rear_slip_state(speed: float, rear_slip_deg: float, yaw_rate: float = 0.2) -> np.ndarray:
@@ -274,6 +277,35 @@ def test_same_config_reuses_and_a_changed_one_does_not(stored, sedan_module: Sed
     assert content_key(dry, tiny(Path(data.root), seed=1), DRY) != directory.name  # data
     # Where and how fast it is collected does not change the data.
     assert content_key(dry, tiny(Path("/elsewhere"), workers=2), DRY) == directory.name
+
+
+def test_the_pedal_in_other_units_is_a_dataset_of_its_own_with_the_same_drives(
+    stored, sedan_module: Sedan
+) -> None:
+    data, directory = stored
+    # Off (null): the signed scale, and the content key datasets had before the setting.
+    assert "pedal_gains" not in data.content() and data.channels == SEDAN_INPUTS
+    other = tiny(Path(data.root), pedal_gains=[3.3, 0.83])
+    pedal = other.channels[1]
+    assert (pedal.name, pedal.role, pedal.gain_positive, pedal.gain_negative) == (
+        "pedal",
+        "pedal",
+        3.3,
+        0.83,
+    )
+    assert content_key(sedan_module.fingerprint, other, DRY) != directory.name
+    dataset, today = load(collect(sedan_module, other, DRY, progress=False)), load(directory)
+    for episode, same in zip(dataset.episodes(), today.episodes(), strict=True):
+        np.testing.assert_array_equal(episode.inputs, same.inputs)  # the plant's units
+        assert episode.channels == other.channels
+    assert dataset.normalizer.channels == other.channels  # a model file's, with its gains
+    assert MinMaxNormalizer.from_dict(dataset.normalizer.to_dict()).channels == other.channels
+    pedals = np.array([0.2, 0.05, 0.0, -1.0, -9.1])  # throttle, or brake in -MPa
+    np.testing.assert_allclose(pedal.feature(pedals), [0.66, 0.165, 0.0, -0.83, -7.553])
+    np.testing.assert_allclose(pedal.value(pedal.feature(pedals)), pedals, atol=1e-15)
+    u = np.column_stack([np.linspace(-90.0, 90.0, len(pedals)), pedals])
+    normalizer = dataset.normalizer
+    np.testing.assert_allclose(normalizer.inputs_inverse(normalizer.inputs(u)), u, atol=1e-12)
 
 
 def test_the_sedan_is_a_plant_whose_fingerprint_names_what_moves_it(sedan_module: Sedan) -> None:

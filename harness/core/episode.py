@@ -87,6 +87,22 @@ SEDAN_INPUTS: tuple[InputChannel, ...] = (
 )
 
 
+def sedan_inputs(pedal_gains: Sequence[float] | None = None) -> tuple[InputChannel, ...]:
+    """The sedan's inputs with the pedal's feature in other units: ``pedal_gains`` = (feature
+    per unit of throttle opening, feature per MPa of brake pressure); None: :data:`SEDAN_INPUTS`
+    (the signed scale, 1/0.2 and 1/9.1)."""
+    if pedal_gains is None:
+        return SEDAN_INPUTS
+    positive, negative = (float(gain) for gain in pedal_gains)
+    pedal = dataclasses.replace(SEDAN_INPUTS[1], gain_positive=positive, gain_negative=negative)
+    return (SEDAN_INPUTS[0], pedal)
+
+
+def is_sedan(channels: Sequence[InputChannel]) -> bool:
+    """Whether ``channels`` are the sedan's inputs, whatever the pedal's gains."""
+    return tuple(c.name for c in channels) == tuple(c.name for c in SEDAN_INPUTS)
+
+
 def channels_from_dicts(described: Sequence[Mapping[str, Any]] | None) -> tuple[InputChannel, ...]:
     """The channels :meth:`InputChannel.to_dict` wrote; none (a file from before inputs were
     described) are the sedan's, and a sedan channel written before roles gets its role."""

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from harness.core.episode import SEDAN_INPUTS, Episode
+from harness.core.episode import SEDAN_INPUTS, Episode, is_sedan
 from harness.output import save_figure
 
 G = 9.81
@@ -91,7 +91,7 @@ def summary(
         "lateral_accel_p99_mps2": float(np.percentile(a_y, 99)),
         "lateral_accel_max_mps2": float(a_y.max()),
     }
-    if road_friction is None or episodes[0].channels != SEDAN_INPUTS:
+    if road_friction is None or not is_sedan(episodes[0].channels):
         names = episodes[0].input_names
         ranges = {
             n: [float(inputs[:, j].min()), float(inputs[:, j].max())] for j, n in enumerate(names)
@@ -152,8 +152,14 @@ def figure(splits: Mapping[str, Sequence[Episode]], road_friction: float | None)
     ax = fig.add_subplot(grid[1, 3])
     channels = episodes[0].channels
     labels: tuple[str, ...]
-    if channels == SEDAN_INPUTS:
-        labels = ("steering-wheel angle (deg)", "throttle / 0.2  |  −brake / 9.1 MPa")
+    if is_sedan(channels):
+        pedal = channels[1]
+        labels = (
+            "steering-wheel angle (deg)",
+            "throttle / 0.2  |  −brake / 9.1 MPa"
+            if channels == SEDAN_INPUTS
+            else f"throttle × {pedal.gain_positive:g}  |  −brake MPa × {pedal.gain_negative:g}",
+        )
     else:
         labels = tuple(c.name + (f" ({c.unit})" if c.unit else "") for c in channels[:2])
     if len(channels) == 1:

@@ -74,6 +74,7 @@ from harness.core.episode import (
     InputChannel,
     MinMaxNormalizer,
     channels_from_dicts,
+    sedan_inputs,
 )
 from harness.core.files import write_atomic, write_text_atomic
 from harness.data.driver import DriverConfig, DriverKnowledge, SyntheticDriver
@@ -118,6 +119,10 @@ class DataConfig:
     # own seed per episode), up to a little above the lane change's 22.2 m/s that the main job
     # tracks; [0, 0]: every drive starts from rest, as the paper's (data=paper).
     start_speed_mps: tuple[float, float] = (0.0, 28.0)
+    # The pedal's feature, the input the models are fitted in: [per unit of throttle opening,
+    # per MPa of brake pressure]; null: the signed scale, throttle / 0.2 and brake / 9.1 MPa, each
+    # in [-1, 1]. The episodes are the same; their key (and every model fitted on them) is not.
+    pedal_gains: tuple[float, float] | None = None
     driver: DriverConfig = field(default_factory=DriverConfig)
     root: str | None = None  # None: $KOOPMAN_HARNESS_CACHE/datasets (~/.cache/koopman-harness)
     workers: int = 2  # processes
@@ -148,6 +153,14 @@ class DataConfig:
                 f"data.start_speed_mps must be [low, high] with 0 <= low <= high <= "
                 f"data.driver.max_speed_mps ({self.driver.max_speed_mps}), got {list(speeds)}"
             )
+        if self.pedal_gains is not None:
+            gains = tuple(float(v) for v in self.pedal_gains)  # the schema hands a list
+            self.pedal_gains = gains  # type: ignore[assignment]
+            if len(gains) != 2 or not all(0 < g < math.inf for g in gains):
+                raise ValueError(
+                    f"data.pedal_gains must be [throttle, brake] gains > 0 and finite, or null "
+                    f"(got {list(gains)})"
+                )
         total = self.episodes * self.max_steps
         if total > MAX_TOTAL_STEPS:
             raise ValueError(
@@ -163,7 +176,14 @@ class DataConfig:
         for transient in ("root", "workers", "record_every", "name"):
             values.pop(transient)
         values["split"] = dict(self.split)
+        if self.pedal_gains is None:  # the signed scale: the key datasets had before the setting
+            values.pop("pedal_gains")
         return values
+
+    @property
+    def channels(self) -> tuple[InputChannel, ...]:
+        """The inputs as the models see them: the sedan's, with :attr:`pedal_gains`."""
+        return sedan_inputs(self.pedal_gains)
 
     def start_speed(self, index: int) -> float:
         """The speed episode ``index`` starts at (m/s), from a seed of its own: the other draws
@@ -266,7 +286,7 @@ def _manifest_body(
 ) -> dict[str, Any]:
     """The manifest of an incomplete dataset: all of it derived from the config, the plant and
     the episode files (episodes in name order, so a rebuilt manifest has the original's bytes)."""
-    return {
+    body = {
         "format": FORMAT_VERSION,
         "key": key,
         "data": data.content(),
@@ -276,6 +296,9 @@ def _manifest_body(
         "episodes": {name: dict(episodes[name]) for name in sorted(episodes)},
         "complete": False,
     }
+    if data.channels != SEDAN_INPUTS:  # the pedal in other units: the episodes' channels say so
+        body["inputs"] = [channel.to_dict() for channel in data.channels]
+    return body
 
 
 def _manifest_digest(manifest: Mapping[str, Any]) -> str:
@@ -680,7 +703,7 @@ def _load_episode(directory: Path, name: str, manifest: Mapping[str, Any]) -> Ep
     one the manifest vouches for (rebuilt from it by an older harness, or edited with it), so
     both must go for the collection to drive the episode again."""
     path = directory / manifest["episodes"][name]["file"]
-    described = manifest.get("inputs")  # a dataset of logs: its own inputs; else the sedan's
+    described = manifest.get("inputs")  # logs, or the sedan's in other units; else the sedan's
     channels = channels_from_dicts(described)
     try:
         return _read_episode(path, name, channels)
@@ -748,6 +771,7 @@ def drive_again(
                 arrays["states"],
                 arrays["inputs"],
                 arrays["poses"],
+                data.channels,
             )
         )
     return again

@@ -34,7 +34,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from harness.core.contracts import RunLearner
-from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel
+from harness.core.episode import Episode, InputChannel, is_sedan
 from harness.output import save_arrays, save_figure
 from harness.recorder import Recorder
 
@@ -380,7 +380,7 @@ def input_groups(channels: Sequence[InputChannel]) -> list[list[int]]:
 
 
 def _figure(episode: Episode) -> tuple[Figure, np.ndarray]:
-    sedan = episode.channels == SEDAN_INPUTS
+    sedan = is_sedan(episode.channels)
     groups = [[0, 1]] if sedan else input_groups(episode.channels)
     fig = Figure(figsize=(9, 9 + 1.5 * (len(groups) - 1)))
     axes = fig.subplots(3 + len(groups), 1, sharex=True)

@@ -48,7 +48,7 @@ from harness.core.contracts import (
     INPUT_NAMES,
     RunLearner,
 )
-from harness.core.episode import SEDAN_INPUTS, Episode
+from harness.core.episode import Episode
 from harness.core.phases import Phase, seconds
 from harness.data.collect import data_config, prepare, reference_speeds
 from harness.data.driver import DriverKnowledge
@@ -126,11 +126,9 @@ class Pipeline:
         # a size beyond this machine.
         self.loaded = self._load(model_path, learner, learner_name)
         if self.loaded is None:
+            learner.check_inputs(self.data.channels)  # the sedan's, or the logs' column map
             if isinstance(self.data, DataConfig):
-                learner.check_inputs(SEDAN_INPUTS)
                 learner.check_size(self.data.max_steps)  # logs: once read, before the fit
-            else:
-                learner.check_inputs(self.data.channels)  # the logs' column map
         self.window_steps, self.windows_s, self.envelope_spans = _prediction_settings(
             prediction_window_steps, prediction_window_s, prediction_envelope_spans
         )
