@@ -290,28 +290,11 @@ def deep_edmd_step(
     acts_d = mlp_forward(decoder, torch.cat([z[1:], z_pred]).view(-1, size))
     err = x[1:].repeat(2, 1, 1) - acts_d[-1].view(2 * p, batch, n)  # [recon | pred]
     lift_err = z[1:] - z_pred
-    c_ox, c_xx = weights.ox / (batch * p), weights.xx / (batch * p)
-    c_xo, c_inf = weights.xo / (batch * p), weights.inf / (batch * p)
-    # L_xo and L_readout (the state part of z, when z holds x) as one weight per coordinate
-    c_lift = torch.full((size,), c_xo)
-    if lifted_includes_state:
-        c_lift[:n] += weights.readout / (batch * p)
-    weighted = err * state_weights if state_weights is not None else err
-    squared = (err * weighted).sum(-1)
-    peak, where = err.abs().max(-1)
-    loss = (
-        c_ox * squared[:p].sum()
-        + c_xx * squared[p:].sum()
-        + (c_lift * lift_err * lift_err).sum()
-        + c_inf * peak.sum()
+    loss, grad_d, grad_lift = _loss_and_output_gradients(
+        err, lift_err, weights, n, lifted_includes_state, state_weights
     )
-    # backward: d loss / d decoder output, then through the decoder, A/B and the encoder
-    coef = torch.cat([torch.full((p, 1, 1), -2.0 * c_ox), torch.full((p, 1, 1), -2.0 * c_xx)])
-    grad_d = weighted * coef
-    where = where.unsqueeze(-1)
-    grad_d.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
+    # backward: through the decoder, A/B and the encoder
     grad_in = mlp_backward(decoder, acts_d, grad_d.view(-1, n)).view(2 * p, batch, size)
-    grad_lift = (2.0 * c_lift) * lift_err
     grad_z = grad_in[:p] + grad_lift  # d/d z_1..z_p (reconstruction, L_xo, L_readout)
     grad_pred = grad_in[p:] - grad_lift  # d/d K^[i] z_0
     if bilinear is not None:
@@ -333,6 +316,41 @@ def deep_edmd_step(
     grad_phi = grad_z[..., n:] if lifted_includes_state else grad_z
     mlp_backward(encoder, acts_e, grad_phi.reshape(-1, grad_phi.shape[-1]), need_input_grad=False)
     return float(loss)
+
+
+def _loss_and_output_gradients(
+    err: torch.Tensor,
+    lift_err: torch.Tensor,
+    weights: LossWeights,
+    n: int,
+    lifted_includes_state: bool,
+    state_weights: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The loss of :func:`deep_edmd_step` from its errors (decoder outputs ``err`` (2p, B, n):
+    reconstructions, then predictions; lifted ``lift_err`` (p, B, N)), and its gradients with
+    respect to the decoder's output and the lifted prediction error."""
+    p2, batch, size = err.shape[0], err.shape[1], lift_err.shape[-1]
+    p = p2 // 2
+    c_ox, c_xx = weights.ox / (batch * p), weights.xx / (batch * p)
+    c_xo, c_inf = weights.xo / (batch * p), weights.inf / (batch * p)
+    # L_xo and L_readout (the state part of z, when z holds x) as one weight per coordinate
+    c_lift = torch.full((size,), c_xo)
+    if lifted_includes_state:
+        c_lift[:n] += weights.readout / (batch * p)
+    weighted = err * state_weights if state_weights is not None else err
+    squared = (err * weighted).sum(-1)
+    peak, where = err.abs().max(-1)
+    loss = (
+        c_ox * squared[:p].sum()
+        + c_xx * squared[p:].sum()
+        + (c_lift * lift_err * lift_err).sum()
+        + c_inf * peak.sum()
+    )
+    coef = torch.cat([torch.full((p, 1, 1), -2.0 * c_ox), torch.full((p, 1, 1), -2.0 * c_xx)])
+    grad_d = weighted * coef
+    where = where.unsqueeze(-1)
+    grad_d.scatter_add_(-1, where, -c_inf * torch.sign(err.gather(-1, where)))
+    return loss, grad_d, (2.0 * c_lift) * lift_err
 
 
 class _Objective:
@@ -523,11 +541,11 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         self._encoder_np = None  # the encoder is training: lift through the network
         self._read_matrices(train)
         if self.refit_koopman_lstsq:
-            theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
+            theta = ridge_lstsq(_lifted_pairs(self, train), _LSTSQ_RIDGE)
             size = theta.shape[1]
             self.A_, self.B_ = theta[:size].T.copy(), theta[size:].T.copy()
         elif self.refit_inputs_lstsq:
-            self.B_ = self._inputs_lstsq(train, self.A_)
+            self.B_ = _inputs_lstsq(self, train, self.A_)
 
     def _rollout_scorer(
         self, train: Sequence[Episode], validation: Sequence[Episode]
@@ -596,7 +614,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         The model then is ``learner=deep_edmd_lstsq`` in every hyperparameter (refit, linear
         read-out), so its saved file loads under that name and predicts as DE-MPC does."""
         views = self.params_.views()
-        theta = ridge_lstsq(self._lifted_pairs(train), _LSTSQ_RIDGE)
+        theta = ridge_lstsq(_lifted_pairs(self, train), _LSTSQ_RIDGE)
         size = theta.shape[1]
         views["koopman.A.weight"].copy_(torch.from_numpy(theta[:size].T))
         views["koopman.B.weight"].copy_(torch.from_numpy(theta[size:].T))
@@ -622,21 +640,11 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
             raise ValueError("this Deep EDMD's A and B are refitted already (refit_koopman_lstsq)")
         views = self.params_.views()
         A = views["koopman.A.weight"].double().numpy()
-        views["koopman.B.weight"].copy_(torch.from_numpy(self._inputs_lstsq(train, A)))
+        views["koopman.B.weight"].copy_(torch.from_numpy(_inputs_lstsq(self, train, A)))
         self.refit_inputs_lstsq = True
         self.config = replace(self.config, refit_inputs_lstsq=True)
         self._read_matrices(train)
         return self
-
-    def _inputs_lstsq(self, train: Sequence[Episode], A: np.ndarray) -> np.ndarray:
-        """B (N, m) minimizing sum ||z_{k+1} - A z_k - B u_k||^2 over the lifted training data."""
-        size = A.shape[0]
-
-        def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
-            for regressors, targets in self._lifted_pairs(train):
-                yield regressors[:, size:], targets - regressors[:, :size] @ A.T
-
-        return ridge_lstsq(pairs(), _LSTSQ_RIDGE).T.copy()
 
     def _read_matrices(self, train: Sequence[Episode]) -> None:
         views = self.params_.views()
@@ -646,20 +654,7 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         if self.lifted_includes_state:
             self.C_ = np.eye(n, self.A_.shape[0])
         else:  # the paper's C = argmin sum ||x_k - C phi(x_k)||^2
-            self.C_ = ridge_lstsq(self._lifted_states(train), _LSTSQ_RIDGE).T
-
-    def _lifted_pairs(self, episodes: Sequence[Episode]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        for e in episodes:
-            z = self._network_lift(e.states)
-            v = self.normalizer_.inputs(e.inputs)
-            for rows in row_chunks(z[:-1], 20_000):
-                yield np.hstack([z[:-1][rows], v[:-1][rows]]), z[1:][rows]
-
-    def _lifted_states(
-        self, episodes: Sequence[Episode]
-    ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        for e in episodes:
-            yield self._network_lift(e.states), self.normalizer_.states(e.states)
+            self.C_ = ridge_lstsq(_lifted_states(self, train), _LSTSQ_RIDGE).T
 
     # -- the Koopman contract ----------------------------------------------------------------------
 
@@ -706,6 +701,39 @@ class DeepEDMD(TrainedLearner, KoopmanLearner):
         super()._set_state(state)
         self.A_, self.B_, self.C_ = (state[k].double().numpy().copy() for k in "ABC")
         self._for_control()
+
+
+# -- the least-squares fits' data: a trained model's lifted drives ----------------------------
+
+
+def _lifted_pairs(
+    model: DeepEDMD, episodes: Sequence[Episode]
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """([z_k, v_k], z_{k+1}) of the drives, lifted as the network lifts, in chunks of rows."""
+    for e in episodes:
+        z = model._network_lift(e.states)
+        v = model.normalizer_.inputs(e.inputs)
+        for rows in row_chunks(z[:-1], 20_000):
+            yield np.hstack([z[:-1][rows], v[:-1][rows]]), z[1:][rows]
+
+
+def _lifted_states(
+    model: DeepEDMD, episodes: Sequence[Episode]
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(z_k, x_k normalized) of the drives: what the paper's C is fitted on."""
+    for e in episodes:
+        yield model._network_lift(e.states), model.normalizer_.states(e.states)
+
+
+def _inputs_lstsq(model: DeepEDMD, train: Sequence[Episode], A: np.ndarray) -> np.ndarray:
+    """B (N, m) minimizing sum ||z_{k+1} - A z_k - B u_k||^2 over the lifted training data."""
+    size = A.shape[0]
+
+    def pairs() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        for regressors, targets in _lifted_pairs(model, train):
+            yield regressors[:, size:], targets - regressors[:, :size] @ A.T
+
+    return ridge_lstsq(pairs(), _LSTSQ_RIDGE).T.copy()
 
 
 def readouts_agree(effects: Mapping[str, np.ndarray]) -> bool:
