@@ -63,7 +63,6 @@ from typing import Any, ClassVar, Self
 
 import numpy as np
 import torch
-from scipy.optimize import lsq_linear, minimize, minimize_scalar
 
 from harness.core.checks import positive
 from harness.core.contracts import Dynamics
@@ -76,21 +75,23 @@ from harness.core.episode import (
     InputChannel,
     MinMaxNormalizer,
     input_features,
-    is_sedan,
 )
 from learners.base import Learner, Shape, check_fit_data, check_rollout_args
 from learners.settings import settle
+from learners.single_track_fit import (
+    LateralSamples,
+    form_of,
+    identify_lateral,
+    identify_longitudinal,
+    physical_parameters,
+    stable_substeps,
+    warn_sedan_geometry,
+)
 
 __all__ = ["SingleTrack", "SingleTrackConfig", "coefficient_names", "form_of"]
 
-LATERAL = ("front_per_mass", "rear_per_mass", "steer_per_mass")  # C_f/m, C_r/m, C_f/(m i_s)
-YAW = ("mass_per_inertia",)  # m / I_z
 FORM = ("vy_steer", "vy_vy", "vy_r", "r_steer", "r_vy", "r_r")  # θ_1 .. θ_6
 LONGITUDINAL = ("rolling", "drag", "throttle", "throttle_power", "brake")  # the sedan's c_0 .. b
-MAX_SUBSTEPS = 50
-# a and b of any road car: from a city car's 0.8 m to a long van's 3 m, with margin.
-GEOMETRY_BOUNDS_M = (0.5, 3.5)
-SEDAN_GEOMETRY = {"cg_to_front_m": 1.15, "cg_to_rear_m": 1.55, "mass_kg": 1500.0}
 # Bounds on (g, p, b) of an input by its role: g multiplies its positive part, p that part per
 # speed, b its negative part. None: the coefficient is held at 0.
 _INF = math.inf
@@ -103,20 +104,6 @@ _SIGNS: dict[str, tuple[tuple[float, float] | None, ...]] = {
 _RESISTANCES = ((-_INF, 0.0), (-_INF, 0.0))  # c_0 (rolling), c_2 (drag)
 log = logging.getLogger(__name__)
 _Maps = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-
-
-@dataclass(frozen=True)
-class _LateralSamples:
-    """The samples the lateral and yaw equations are fitted on: states, road-wheel angle
-    (rad), lateral and yaw acceleration."""
-
-    x: np.ndarray
-    delta: np.ndarray
-    lateral_accel: np.ndarray
-    yaw_accel: np.ndarray
-
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        return self.x, self.delta, self.lateral_accel, self.yaw_accel
 
 
 @dataclass(frozen=True)
@@ -168,23 +155,6 @@ def coefficient_names(input_names: Sequence[str]) -> tuple[str, ...]:
         f"{name}_{part}" for name in input_names[1:] for part in ("on", "on_power", "off")
     )
     return (*FORM, "rolling", "drag", *per_input)
-
-
-def form_of(
-    physics: Mapping[str, float], a: float, b: float
-) -> tuple[float, float, float, float, float, float]:
-    """θ_1 .. θ_6 of the single-track model with C_f/m, C_r/m, C_f/(m i_s), m/I_z, a and b."""
-    front, rear, steer = (physics[k] for k in LATERAL)
-    k = physics["mass_per_inertia"]
-    moment = a * front - b * rear
-    return (
-        steer,
-        -(front + rear),
-        -moment,
-        k * a * steer,
-        -k * moment,
-        -k * (a * a * front + b * b * rear),
-    )
 
 
 @dataclass(frozen=True)
@@ -268,7 +238,7 @@ class SingleTrack(Learner):
         longitudinal = [physics[k] for k in LONGITUDINAL]
         model.coefficients_ = np.array([*form_of(physics, a, b), *longitudinal], dtype=np.float64)
         model.dt_ = float(dt)
-        model.substeps_ = model._stable_substeps(40.0)
+        model.substeps_ = stable_substeps(model.coefficients_, model.dt_, model.min_speed, 40.0)
         return model
 
     def check_inputs(self, channels: Sequence[InputChannel]) -> None:
@@ -283,7 +253,8 @@ class SingleTrack(Learner):
         """Least squares on the Euler one-step derivatives of ``train`` (module docstring)."""
         check_fit_data(train, validation, normalizer, self.name)
         layout = InputLayout.of(normalizer.channels)
-        self._warn_sedan_geometry(normalizer.channels)
+        own = {"cg_to_front_m": self.a, "cg_to_rear_m": self.b, "mass_kg": self.mass_kg}
+        warn_sedan_geometry(own, normalizer.channels)
         steps = np.concatenate([np.diff(e.time_s) for e in train])
         dt = float(np.median(steps))
         self.normalizer_ = normalizer  # the inputs' roles say which steers, in which unit
@@ -304,162 +275,20 @@ class SingleTrack(Learner):
                 f"identify {needed // 10} parameters"
             )
         delta = u[moving, 0] * layout.steer_to_rad
-        lateral = _LateralSamples(x[moving], delta, lateral_accel[moving], rate[moving, 2])
-        self.identified_geometry_: tuple[float, float] | None = None
-        if self.a is not None and self.b is not None:
-            form = self._fit_geometry(lateral, self.a, self.b)
-        else:
-            w = np.maximum(vx[moving], self.min_speed)
-            regressors = np.column_stack([delta, vy[moving] / w, r[moving] / w])
-            form = (
-                *_lstsq(regressors, lateral_accel[moving]),
-                *_lstsq(regressors, rate[moving, 2]),
-            )
-            a, b = _geometry_of(form)
-            low, high = GEOMETRY_BOUNDS_M
-            if not (low <= a <= high and low <= b <= high):
-                a, b = self._bounded_geometry(lateral, a, b)
-                form = self._fit_geometry(lateral, a, b)
-                self.identified_geometry_ = (a, b)
+        lateral = LateralSamples(x[moving], delta, lateral_accel[moving], rate[moving, 2])
+        form, self.identified_geometry_ = identify_lateral(lateral, self.a, self.b, self.min_speed)
         rolling_regime = vx > 0.5  # at standstill the brakes hold the car: no dynamics to fit
-        longitudinal = self._longitudinal_regressors(x, u)[rolling_regime]
+        longitudinal = longitudinal_regressors(x, u, self.min_speed)[rolling_regime]
         target = (rate[:, 0] - vy * r)[rolling_regime]
-        longitudinal_fit, self.bounded_ = _signed_lstsq(longitudinal, target, layout.bounds())
-        if self.bounded_:
-            names = coefficient_names(self._internal_names(normalizer))[6:]
-            held = ", ".join(names[i] for i in self.bounded_)
-            log.warning(
-                "single_track: the least-squares fit gave %s the sign physics forbids (an input "
-                "that brakes accelerating, a drive that slows); fitted again with the signs as "
-                "bounds, %s (training.fit.bounded)",
-                held,
-                "held at its bound" if len(self.bounded_) == 1 else "each held at its bound",
-            )
+        names = coefficient_names(self._internal_names(normalizer))[6:]
+        longitudinal_fit, self.bounded_ = identify_longitudinal(
+            longitudinal, target, layout.bounds(), names
+        )
         self.coefficients_ = np.array([*form, *longitudinal_fit], dtype=np.float64)
         self.dt_ = dt
         self._maps = None  # new coefficients: the cached maps and floats are rebuilt
-        self.substeps_ = self._stable_substeps(float(vx.max()))
+        self.substeps_ = stable_substeps(self.coefficients_, dt, self.min_speed, float(vx.max()))
         return self
-
-    def _fit_geometry(
-        self, samples: _LateralSamples, a: float, b: float
-    ) -> tuple[float, float, float, float, float, float]:
-        """θ_1 .. θ_6 of the physical fit with a and b given."""
-        fitted = self._fit_lateral(*samples.arrays(), a, b)
-        return form_of(dict(zip(LATERAL + YAW, fitted, strict=True)), a, b)
-
-    def _bounded_geometry(
-        self, samples: _LateralSamples, a_free: float, b_free: float
-    ) -> tuple[float, float]:
-        """a and b within :data:`GEOMETRY_BOUNDS_M` that fit the lateral and yaw equations
-        best (a coarse grid, then a bounded local search), with a warning that the free fit's
-        were not a road car's."""
-        low, high = GEOMETRY_BOUNDS_M
-
-        def residual(ab: np.ndarray) -> float:
-            return self._lateral_residual(samples, float(ab[0]), float(ab[1]))
-
-        grid = np.linspace(low, high, 7)
-        start = min(((a, b) for a in grid for b in grid), key=lambda ab: residual(np.array(ab)))
-        best = minimize(residual, np.array(start), bounds=[(low, high)] * 2, method="L-BFGS-B")
-        a, b = (float(v) for v in best.x)
-        log.warning(
-            "single_track: the data gives a = %.3g m, b = %.3g m, outside [%g, %g] m: it cannot "
-            "separate the axles; identified within those bounds instead, a = %.2f m, b = %.2f "
-            "m. Measured ones are better: learner.cg_to_front_m, learner.cg_to_rear_m",
-            a_free,
-            b_free,
-            low,
-            high,
-            a,
-            b,
-        )
-        return a, b
-
-    def _lateral_residual(self, samples: _LateralSamples, a: float, b: float) -> float:
-        """Normalized squared residual of both equations with a and b given."""
-        form = self._fit_geometry(samples, a, b)
-        x, delta, lateral_accel, yaw_accel = samples.arrays()
-        vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
-        w = np.maximum(vx, self.min_speed)
-        regressors = np.column_stack([delta, vy / w, r / w])
-        lateral = regressors @ np.array(form[:3]) - lateral_accel
-        yaw = regressors @ np.array(form[3:]) - yaw_accel
-        return float(np.mean(lateral**2) / lateral_accel.var() + np.mean(yaw**2) / yaw_accel.var())
-
-    def _warn_sedan_geometry(self, channels: Sequence[InputChannel]) -> None:
-        """Logs of another car fitted with the sedan's measured geometry and mass: say so."""
-        own = {"cg_to_front_m": self.a, "cg_to_rear_m": self.b, "mass_kg": self.mass_kg}
-        defaults = [key for key, value in own.items() if value == SEDAN_GEOMETRY[key]]
-        if is_sedan(channels) or not defaults:
-            return
-        log.warning(
-            "single_track: these inputs are not the sedan's, but %s %s the sedan's (%s): set "
-            "learner.%s to this car's (null a and b: identified from the data)",
-            ", ".join(defaults),
-            "is" if len(defaults) == 1 else "are",
-            ", ".join(f"{SEDAN_GEOMETRY[k]:g}" for k in defaults),
-            "=…, learner.".join(defaults) + "=…",
-        )
-
-    @staticmethod
-    def _fit_lateral(
-        x: np.ndarray,
-        delta: np.ndarray,
-        lateral_accel: np.ndarray,
-        yaw_accel: np.ndarray,
-        a: float,
-        b: float,
-    ) -> tuple[float, float, float, float]:
-        """(C_f/m, C_r/m, C_f/(m i_s), m/I_z): both equations together, by separable least
-        squares (for a given m/I_z both are linear in the rest; the best m/I_z by a bounded
-        scalar search). Each equation is scaled by its spread so both count.
-
-        Fitted apart, the lateral equation alone cannot tell C_f from C_r (both multiply
-        nearly −vy/vx): on ``data=default`` it gave C_r = 5·C_f and a model that lost the lane
-        change; the yaw equation weighs them with +a and −b and separates them.
-        """
-        vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
-        w = np.maximum(vx, 1e-9)
-        alpha_f, alpha_r = -(vy + a * r) / w, -(vy - b * r) / w
-        lateral = np.column_stack([alpha_f, alpha_r, delta]) / lateral_accel.std()
-        yaw = np.column_stack([a * alpha_f, -b * alpha_r, a * delta])
-        yaw /= yaw_accel.std()
-        target = np.concatenate([lateral_accel / lateral_accel.std(), yaw_accel / yaw_accel.std()])
-
-        def fit(log_ratio: float) -> tuple[np.ndarray, float]:
-            regressors = np.vstack([lateral, np.exp(log_ratio) * yaw])
-            solution = _lstsq(regressors, target)
-            return solution, float(np.sum((regressors @ solution - target) ** 2))
-
-        # m / I_z = 1 / (yaw radius of gyration)²: radii from 0.3 m to 10 m cover any car.
-        best = minimize_scalar(
-            lambda log_ratio: fit(log_ratio)[1],
-            bounds=(np.log(0.01), np.log(11.0)),
-            method="bounded",
-            options={"xatol": 1e-10},
-        )
-        (front, rear, steer), _ = fit(float(best.x))
-        return float(front), float(rear), float(steer), float(np.exp(best.x))
-
-    def _stable_substeps(self, fastest_mps: float) -> int:
-        """Euler sub-steps per period that keep every lateral eigenvalue λ stable with a factor
-        2 margin (h |λ|² <= |Re λ|), from min_speed_mps to ``fastest_mps``."""
-        _, t2, t3, _, t5, t6 = self.coefficients_[:6]
-        needed = 1
-        for vx in np.linspace(self.min_speed, max(fastest_mps, self.min_speed), 50):
-            w = max(vx, self.min_speed)
-            jacobian = np.array([[t2 / w, t3 / w - vx], [t5 / w, t6 / w]])
-            for eigenvalue in np.linalg.eigvals(jacobian):
-                if eigenvalue.real >= 0:
-                    continue  # not damped: no step size makes Euler follow it more stably
-                largest = abs(eigenvalue.real) / abs(eigenvalue) ** 2
-                needed = max(needed, math.ceil(self.dt_ / largest - 1e-9))
-        return min(needed, MAX_SUBSTEPS)
-
-    def _steer_to_rad(self) -> float:
-        """The steering input's unit, as its channel declares it."""
-        return self._input_layout().steer_to_rad
 
     def _input_layout(self) -> InputLayout:
         """The layout of this model's inputs (before a fit: the sedan's), cached per channels."""
@@ -492,44 +321,15 @@ class SingleTrack(Learner):
 
     @property
     def parameters(self) -> dict[str, float]:
-        """The identified physics, in SI units: C_f, C_r (N/rad per axle), I_z (kg m²), the
-        steering ratio (per unit of the steering input), a and b (given or recovered), and the
-        longitudinal coefficients (per unit mass)."""
-        t1, t2, t3, _, t5, _ = self.coefficients_[:6].tolist()
-        mass_per_inertia = t5 / t3 if t3 else float("nan")
-        total, moment = -t2, -t3
-        if self.a is not None and self.b is not None:
-            a, b = self.a, self.b
-        else:
-            a, b = _geometry_of(self.coefficients_[:6])
-        rear = (a * total - moment) / (a + b)
-        front = total - rear
+        """The identified physics in SI units (:func:`physical_parameters`)."""
         names = (
             coefficient_names(self._internal_names(self.normalizer_))
             if hasattr(self, "normalizer_")
             else coefficient_names(("steer_wheel_deg", "pedal"))
         )
-        return {
-            "cornering_stiffness_front_n_per_rad": front * self.mass_kg,
-            "cornering_stiffness_rear_n_per_rad": rear * self.mass_kg,
-            "yaw_inertia_kg_m2": self.mass_kg / mass_per_inertia,
-            "steering_ratio": front / t1 if t1 else float("inf"),
-            "cg_to_front_m": a,
-            "cg_to_rear_m": b,
-            **dict(zip(names[6:], self.coefficients_[6:].tolist(), strict=True)),
-        }
+        return physical_parameters(self.coefficients_, self.a, self.b, self.mass_kg, names)
 
     # -- the model --------------------------------------------------------------------------
-
-    def _longitudinal_regressors(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        vx = x[..., 0]
-        w = np.maximum(vx, self.min_speed)
-        on, off = np.maximum(u[..., 1:], 0.0), np.minimum(u[..., 1:], 0.0)
-        per_input = np.stack([on, on / w[..., None], off], axis=-1)  # (..., m - 1, 3)
-        per_input = per_input.reshape(*per_input.shape[:-2], -1)
-        return np.concatenate(
-            [np.ones_like(vx)[..., None], (vx * vx)[..., None], per_input], axis=-1
-        )
 
     def derivative(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """ẋ (..., 3) at physical states x (..., 3) and input features u (..., m) (steering,
@@ -537,39 +337,12 @@ class SingleTrack(Learner):
         t1, t2, t3, t4, t5, t6 = self.coefficients_[:6]
         vx, vy, r = x[..., 0], x[..., 1], x[..., 2]
         w = np.maximum(vx, self.min_speed)
-        delta = u[..., 0] * self._steer_to_rad()
-        push = self._longitudinal_regressors(x, u) @ self.coefficients_[6:]
+        delta = u[..., 0] * self._input_layout().steer_to_rad
+        push = longitudinal_regressors(x, u, self.min_speed) @ self.coefficients_[6:]
         dvx = vy * r + push
         dvy = t1 * delta + (t2 * vy + t3 * r) / w - vx * r
         dr = t4 * delta + (t5 * vy + t6 * r) / w
         return np.stack([dvx, dvy, dr], axis=-1)
-
-    def _jacobians(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(∂ẋ/∂x (K, 3, 3), ∂ẋ/∂u (K, 3, m)) at K points, physical units (u: features)."""
-        t1, t2, t3, t4, t5, t6 = self.coefficients_[:6]
-        drag = self.coefficients_[7]
-        gains = self.coefficients_[8:].reshape(-1, 3)  # (m - 1, 3): g, p, b
-        vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
-        fast = (vx > self.min_speed).astype(float)  # ∂w/∂vx
-        w = np.maximum(vx, self.min_speed)
-        others = u[:, 1:]
-        on = np.maximum(others, 0.0)
-        d_vx = np.stack([2 * drag * vx - (on @ gains[:, 1]) / w**2 * fast, r, vy], axis=-1)
-        d_vy = np.stack([-(t2 * vy + t3 * r) / w**2 * fast - r, t2 / w, t3 / w - vx], axis=-1)
-        d_r = np.stack([-(t5 * vy + t6 * r) / w**2 * fast, t5 / w, t6 / w], axis=-1)
-        jx = np.stack([d_vx, d_vy, d_r], axis=1)
-        # Each other input: its positive part's slope above 0, the negative's below, their
-        # mean at exactly 0.
-        on_slope = gains[:, 0] + gains[:, 1] / w[:, None]
-        slope = np.where(
-            others > 0, on_slope, np.where(others < 0, gains[:, 2], (on_slope + gains[:, 2]) / 2)
-        )
-        steer = self._steer_to_rad()
-        ju = np.zeros((len(vx), 3, u.shape[1]))
-        ju[:, 0, 1:] = slope
-        ju[:, 1, 0] = t1 * steer
-        ju[:, 2, 0] = t4 * steer
-        return jx, ju
 
     def _euler(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """One period of ``substeps_`` Euler steps, physical units (no stop at vx = 0)."""
@@ -612,24 +385,12 @@ class SingleTrack(Learner):
             point = x.tolist()
             h = self.dt_ / self.substeps_
             for _ in range(self.substeps_):
-                rates = self._derivative_point(*point, *u.tolist())
+                rates = derivative_point(
+                    self._floats, self._steer_float, self.min_speed, *point, *u.tolist()
+                )
                 point = [p + h * d for p, d in zip(point, rates, strict=True)]
             return (np.array(point) - state_min) / state_span
         return (self._euler(x, u) - state_min) / state_span
-
-    def _derivative_point(
-        self, vx: float, vy: float, r: float, steer_in: float, pedal: float
-    ) -> tuple[float, float, float]:
-        """:meth:`derivative` at one point of the sedan's two inputs, in plain floats (10x
-        faster than numpy on 3-vectors)."""
-        t1, t2, t3, t4, t5, t6, rolling, drag, gain, power, brake = self._floats
-        w = max(vx, self.min_speed)
-        delta = steer_in * self._steer_float
-        throttle = max(pedal, 0.0)
-        push = gain * throttle + power * throttle / w + brake * min(pedal, 0.0)
-        dvx = vy * r + rolling + drag * vx * vx + push
-        dvy = t1 * delta + (t2 * vy + t3 * r) / w - vx * r
-        return dvx, dvy, t4 * delta + (t5 * vy + t6 * r) / w
 
     def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The derivative of :meth:`step` (every sub-step's Jacobian, chained) at K points."""
@@ -637,10 +398,11 @@ class SingleTrack(Learner):
         z, v = np.atleast_2d(z), np.atleast_2d(v)
         x, u = z * state_span + state_min, self._internal(v * input_span + input_min)
         h = self.dt_ / self.substeps_
+        steer = self._input_layout().steer_to_rad
         jac_x = np.broadcast_to(np.eye(3), (len(x), 3, 3)).copy()
         jac_u = np.zeros((len(x), 3, u.shape[1]))
         for _ in range(self.substeps_):
-            jx, ju = self._jacobians(x, u)
+            jx, ju = jacobians(self.coefficients_, self.min_speed, steer, x, u)
             step = np.eye(3) + h * jx
             jac_x = step @ jac_x
             jac_u = step @ jac_u + h * ju
@@ -663,7 +425,7 @@ class SingleTrack(Learner):
             self._maps = (normalizer, (state_span, state_min, input_span, input_min))
             two = len(input_min) == 2
             self._floats = tuple(self.coefficients_.tolist()) if two else ()
-            self._steer_float = self._steer_to_rad()
+            self._steer_float = self._input_layout().steer_to_rad
         return self._maps[1]
 
     # -- model file ---------------------------------------------------------------------------
@@ -685,49 +447,70 @@ class SingleTrack(Learner):
         self.substeps_ = max(1, round(float(state["substeps"].numpy()[0])))
 
 
+def longitudinal_regressors(x: np.ndarray, u: np.ndarray, min_speed: float) -> np.ndarray:
+    """[1, vx², per other input: its positive part, that part per speed, its negative part]."""
+    vx = x[..., 0]
+    w = np.maximum(vx, min_speed)
+    on, off = np.maximum(u[..., 1:], 0.0), np.minimum(u[..., 1:], 0.0)
+    per_input = np.stack([on, on / w[..., None], off], axis=-1)  # (..., m - 1, 3)
+    per_input = per_input.reshape(*per_input.shape[:-2], -1)
+    return np.concatenate([np.ones_like(vx)[..., None], (vx * vx)[..., None], per_input], axis=-1)
+
+
+def jacobians(
+    coefficients: np.ndarray, min_speed: float, steer: float, x: np.ndarray, u: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(∂ẋ/∂x (K, 3, 3), ∂ẋ/∂u (K, 3, m)) at K points, physical units (u: features; ``steer``:
+    the steering input's radians per unit)."""
+    t1, t2, t3, t4, t5, t6 = coefficients[:6]
+    drag = coefficients[7]
+    gains = coefficients[8:].reshape(-1, 3)  # (m - 1, 3): g, p, b
+    vx, vy, r = x[:, 0], x[:, 1], x[:, 2]
+    fast = (vx > min_speed).astype(float)  # ∂w/∂vx
+    w = np.maximum(vx, min_speed)
+    others = u[:, 1:]
+    on = np.maximum(others, 0.0)
+    d_vx = np.stack([2 * drag * vx - (on @ gains[:, 1]) / w**2 * fast, r, vy], axis=-1)
+    d_vy = np.stack([-(t2 * vy + t3 * r) / w**2 * fast - r, t2 / w, t3 / w - vx], axis=-1)
+    d_r = np.stack([-(t5 * vy + t6 * r) / w**2 * fast, t5 / w, t6 / w], axis=-1)
+    jx = np.stack([d_vx, d_vy, d_r], axis=1)
+    # Each other input: its positive part's slope above 0, the negative's below, their
+    # mean at exactly 0.
+    on_slope = gains[:, 0] + gains[:, 1] / w[:, None]
+    slope = np.where(
+        others > 0, on_slope, np.where(others < 0, gains[:, 2], (on_slope + gains[:, 2]) / 2)
+    )
+    ju = np.zeros((len(vx), 3, u.shape[1]))
+    ju[:, 0, 1:] = slope
+    ju[:, 1, 0] = t1 * steer
+    ju[:, 2, 0] = t4 * steer
+    return jx, ju
+
+
+def derivative_point(
+    coefficients: tuple[float, ...],
+    steer: float,
+    min_speed: float,
+    vx: float,
+    vy: float,
+    r: float,
+    steer_in: float,
+    pedal: float,
+) -> tuple[float, float, float]:
+    """:meth:`SingleTrack.derivative` at one point of the sedan's two inputs, in plain floats
+    (10x faster than numpy on 3-vectors)."""
+    t1, t2, t3, t4, t5, t6, rolling, drag, gain, power, brake = coefficients
+    w = max(vx, min_speed)
+    delta = steer_in * steer
+    throttle = max(pedal, 0.0)
+    push = gain * throttle + power * throttle / w + brake * min(pedal, 0.0)
+    dvx = vy * r + rolling + drag * vx * vx + push
+    dvy = t1 * delta + (t2 * vy + t3 * r) / w - vx * r
+    return dvx, dvy, t4 * delta + (t5 * vy + t6 * r) / w
+
+
 def _spans(normalizer: MinMaxNormalizer) -> tuple[np.ndarray, np.ndarray]:
     """Physical units per normalized unit: of the states, and of the input features."""
     state_span = normalizer.states_inverse(np.ones(3)) - normalizer.states_inverse(np.zeros(3))
     low, high = np.asarray(normalizer.input_min), np.asarray(normalizer.input_max)
     return state_span, np.where(high - low > 1e-12, high - low, 1.0)
-
-
-def _geometry_of(form: Sequence[float] | np.ndarray) -> tuple[float, float]:
-    """a and b recovered from θ_1 .. θ_6: a = θ_4 / (k θ_1) with k = m / I_z = θ_5 / θ_3; b
-    from C_f + C_r, a C_f − b C_r and a² C_f + b² C_r."""
-    t1, t2, t3, t4, t5, t6 = (float(v) for v in form)
-    mass_per_inertia = t5 / t3 if t3 else float("nan")
-    total, moment = -t2, -t3
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = t4 / (mass_per_inertia * t1) if t1 else float("nan")
-        denominator = a * total - moment
-        b = a + (-t6 / mass_per_inertia - a * a * total) / denominator if denominator else a
-    return a, b
-
-
-def _signed_lstsq(
-    regressors: np.ndarray, target: np.ndarray, bounds: Sequence[tuple[float, float] | None]
-) -> tuple[np.ndarray, list[int]]:
-    """Least squares with each coefficient in its bounds (None: held at 0), and the indices of
-    those held at a bound. The plain solution where it keeps every sign (the same bits as an
-    unbounded fit); else the bounded one. A regressor that is 0 throughout (a brake column
-    never negative) has nothing to fit: its coefficient is 0."""
-    used = np.any(regressors != 0, axis=0)
-    free = [i for i, bound in enumerate(bounds) if bound is not None and used[i]]
-    low = np.array([bounds[i][0] for i in free])  # type: ignore[index]
-    high = np.array([bounds[i][1] for i in free])  # type: ignore[index]
-    solution = np.zeros(len(bounds))
-    columns = regressors if len(free) == len(bounds) else regressors[:, free]
-    plain = _lstsq(columns, target)
-    if np.all((plain >= low) & (plain <= high)):
-        solution[free] = plain
-        return solution, []
-    bounded = lsq_linear(columns, target, bounds=(low, high), method="bvls").x
-    solution[free] = bounded
-    held = [free[k] for k in np.flatnonzero((bounded == low) | (bounded == high))]
-    return solution, held
-
-
-def _lstsq(regressors: np.ndarray, target: np.ndarray) -> np.ndarray:
-    solution, *_ = np.linalg.lstsq(regressors, target, rcond=None)
-    return np.asarray(solution, dtype=np.float64)

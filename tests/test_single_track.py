@@ -12,7 +12,8 @@ import pytest
 from harness.core.contracts import LinearizableModel
 from harness.core.episode import SEDAN_INPUTS, Episode, InputChannel, MinMaxNormalizer
 from learners.model_file import load
-from learners.single_track import GEOMETRY_BOUNDS_M, InputLayout, SingleTrack
+from learners.single_track import InputLayout, SingleTrack
+from learners.single_track_fit import GEOMETRY_BOUNDS_M
 
 TRUE = {
     "front_per_mass": 75.0,  # C_f / m: 112 kN/rad on 1500 kg
