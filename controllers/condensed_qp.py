@@ -39,6 +39,7 @@ time-varying one) and the order of the paths; each solver keeps its own workspac
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NotRequired, TypedDict, Unpack
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
@@ -78,6 +79,25 @@ class QPSolution:
         return self.status == "solved"
 
 
+class QPSettings(TypedDict):
+    """The keywords of :class:`CondensedQP` (and :class:`TimeVaryingQP`), written once; see
+    :class:`CondensedQP` for each."""
+
+    Np: int
+    Nc: int
+    Q: np.ndarray
+    R: np.ndarray
+    rho: float
+    v_min: np.ndarray
+    v_max: np.ndarray
+    dv_max: np.ndarray
+    tol: NotRequired[float]  # 1e-6
+    max_iter: NotRequired[int]  # 100
+    active_set: NotRequired[bool]  # True
+    active_set_max_iter: NotRequired[int]  # 100
+    qp_solver: NotRequired[str]  # "daqp"
+
+
 class CondensedQP:
     """Prediction matrices, Hessian and dual operator of one model, and the per-step solve.
 
@@ -95,63 +115,39 @@ class CondensedQP:
     """
 
     def __init__(
-        self,
-        A: np.ndarray,
-        B: np.ndarray,
-        C: np.ndarray,
-        *,
-        Np: int,
-        Nc: int,
-        Q: np.ndarray,
-        R: np.ndarray,
-        rho: float,
-        v_min: np.ndarray,
-        v_max: np.ndarray,
-        dv_max: np.ndarray,
-        tol: float = 1e-6,
-        max_iter: int = 100,
-        active_set: bool = True,
-        active_set_max_iter: int = 100,
-        qp_solver: str = "daqp",
+        self, A: np.ndarray, B: np.ndarray, C: np.ndarray, **settings: Unpack[QPSettings]
     ) -> None:
-        self._configure(
-            C, B.shape[1], Np, Nc, rho, v_min, v_max, dv_max, tol, active_set, qp_solver
-        )
-        self.active_set_max_iter = active_set_max_iter
+        self._configure(C, B.shape[1], settings)
         self._build_prediction(A, B, C)
-        self._build_cost(Q, R)
+        self._build_cost(settings["Q"], settings["R"])
         self._build_constraints()
         self._build_dual()
         self._dual_ready = True  # P never changes
-        self._build_piqp(max_iter)
+        self._build_piqp(self._max_iter)
         self._daqp.new_hessian(block=self.P[: self._M, : self._M])  # factored when first needed
         self.reset()
 
-    def _configure(
-        self,
-        C: np.ndarray,
-        m: int,
-        Np: int,
-        Nc: int,
-        rho: float,
-        v_min: np.ndarray,
-        v_max: np.ndarray,
-        dv_max: np.ndarray,
-        tol: float,
-        active_set: bool,
-        qp_solver: str,
-    ) -> None:
-        """Sizes and limits: what does not depend on the model's matrices."""
+    def _configure(self, C: np.ndarray, m: int, settings: QPSettings) -> None:
+        """Sizes, limits and solver settings (the defaults of :class:`QPSettings`' optional
+        keys): what does not depend on the model's matrices."""
+        unknown = sorted(set(settings) - set(QPSettings.__annotations__))
+        if unknown:
+            raise TypeError(f"{type(self).__name__} got unknown settings {', '.join(unknown)}")
+        qp_solver = settings.get("qp_solver", "daqp")
         if qp_solver not in QP_SOLVERS:
             raise ValueError(
                 f"qp_solver must be one of {', '.join(QP_SOLVERS)} (got {qp_solver!r})"
             )
         self.n, self.N = C.shape
         self.m = m
-        self.Np, self.Nc, self.rho, self.tol = Np, Nc, float(rho), tol
-        self.active_set, self.qp_solver = active_set, qp_solver
-        self.v_min, self.v_max = np.asarray(v_min, float), np.asarray(v_max, float)
-        self.dv_max = np.asarray(dv_max, float)
+        self.Np, self.Nc = settings["Np"], settings["Nc"]
+        self.rho, self.tol = float(settings["rho"]), settings.get("tol", 1e-6)
+        self.active_set, self.qp_solver = settings.get("active_set", True), qp_solver
+        self.active_set_max_iter = settings.get("active_set_max_iter", 100)
+        self._max_iter = settings.get("max_iter", 100)
+        self.v_min = np.asarray(settings["v_min"], float)
+        self.v_max = np.asarray(settings["v_max"], float)
+        self.dv_max = np.asarray(settings["dv_max"], float)
 
     # ---- built once per model -------------------------------------------------------------
 

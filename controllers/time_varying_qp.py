@@ -7,11 +7,13 @@ step; the solve paths are :class:`~controllers.condensed_qp.CondensedQP`'s.
 
 from __future__ import annotations
 
+from typing import Unpack
+
 import numpy as np
 from scipy.linalg.lapack import dpotrf, dpotrs
 
 from controllers.active_set import structured_dual
-from controllers.condensed_qp import SMALL_LIFT, CondensedQP
+from controllers.condensed_qp import SMALL_LIFT, CondensedQP, QPSettings
 from controllers.condensing import (
     block_diagonal,
     free_response_maps,
@@ -36,29 +38,11 @@ class TimeVaryingQP(CondensedQP):
         C: (n, N) output map; inputs: m. Everything else as :class:`CondensedQP`'s.
     """
 
-    def __init__(
-        self,
-        C: np.ndarray,
-        inputs: int,
-        *,
-        Np: int,
-        Nc: int,
-        Q: np.ndarray,
-        R: np.ndarray,
-        rho: float,
-        v_min: np.ndarray,
-        v_max: np.ndarray,
-        dv_max: np.ndarray,
-        tol: float = 1e-6,
-        max_iter: int = 100,
-        active_set: bool = True,
-        active_set_max_iter: int = 100,
-        qp_solver: str = "daqp",
-    ) -> None:
-        self._configure(C, inputs, Np, Nc, rho, v_min, v_max, dv_max, tol, active_set, qp_solver)
-        self.active_set_max_iter = active_set_max_iter
+    def __init__(self, C: np.ndarray, inputs: int, **settings: Unpack[QPSettings]) -> None:
+        self._configure(C, inputs, settings)
         self.C = np.ascontiguousarray(C, dtype=float)
-        self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
+        self.Q, self._R = np.asarray(settings["Q"], float), np.asarray(settings["R"], float)
+        Np, Nc = self.Np, self.Nc
         self._R_blocks = block_diagonal(self._R, Nc)
         M = self.m * Nc
         # Until the first set_model: a model without input effect (P = 2 diag(R, ρ)).
@@ -67,7 +51,7 @@ class TimeVaryingQP(CondensedQP):
         self.P[:M, :M], self.P[M, M] = 2 * self._R_blocks, 2 * self.rho
         self.P = np.asfortranarray(self.P)
         self._build_constraints()
-        self._build_piqp(max_iter, hessian=False)
+        self._build_piqp(self._max_iter, hessian=False)
         self._theta_set = False  # no Θ yet: P is a placeholder, not worth DAQP's workspace
         self._A = np.zeros((Np, self.N, self.N))
         self._B = np.zeros((Np, self.N, self.m))
