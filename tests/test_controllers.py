@@ -582,3 +582,9 @@ def test_the_pedal_increment_limit_keeps_the_brakes_in_other_pedal_units() -> No
         braked = origin - normalizer.inputs(np.array([0.0, -0.18]))[1]
         opened = normalizer.inputs(np.array([0.0, throttle]))[1] - origin
         assert np.isclose(pedal, braked) and np.isclose(pedal, opened, rtol=1e-4)
+
+
+def test_a_qp_refuses_a_setting_it_does_not_know() -> None:
+    """The QPs' keywords are one TypedDict; a misspelt one is named, not silently ignored."""
+    with pytest.raises(TypeError, match=r"CondensedQP got unknown settings tols"):
+        make_qp(linear_model(), tols=1e-6)
