@@ -252,11 +252,17 @@ class DEMPCConfig:
             **self.solver_settings(),
         }
 
+    def input_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high): the inputs' bounds, physical (steering-wheel degrees, signed pedal)."""
+        return (
+            np.array([self.steer_wheel_min_deg, self.pedal_min]),
+            np.array([self.steer_wheel_max_deg, self.pedal_max]),
+        )
+
     def input_bounds(self, normalizer: MinMaxNormalizer) -> tuple[np.ndarray, np.ndarray]:
         """(low, high): the inputs' bounds, normalized."""
-        to_v = normalizer.inputs
-        low = np.array([self.steer_wheel_min_deg, self.pedal_min])
-        return to_v(low), to_v(np.array([self.steer_wheel_max_deg, self.pedal_max]))
+        low, high = self.input_limits()
+        return normalizer.inputs(low), normalizer.inputs(high)
 
     def solver_settings(self) -> dict[str, Any]:
         """What every QP of the controller is solved with (CondensedQP's keywords)."""

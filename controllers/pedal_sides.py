@@ -26,6 +26,14 @@ from harness.core.episode import MinMaxNormalizer
 PEDAL = INPUT_NAMES.index("pedal")  # the pedal's column of the inputs (steer_wheel_deg, pedal)
 
 
+def pedal_frame(normalizer: MinMaxNormalizer) -> tuple[float, float, float]:
+    """(the released pedal, normalized; vx's min and range, m/s): where a controller in the
+    model's normalized units finds the pedal's sides and the speed."""
+    released = float(normalizer.inputs(np.zeros(len(INPUT_NAMES)))[PEDAL])
+    vx_min = float(normalizer.state_min[0])
+    return released, vx_min, max(float(normalizer.state_max[0]) - vx_min, 1e-9)
+
+
 class PedalSides:
     """The side the pedal may use this step, and when to open the other.
 
@@ -43,9 +51,8 @@ class PedalSides:
     @classmethod
     def of(cls, margin_mps: float, normalizer: MinMaxNormalizer) -> PedalSides:
         """The sides of a model's normalized pedal (its released point and vx range)."""
-        released = float(normalizer.inputs(np.zeros(len(INPUT_NAMES)))[PEDAL])
-        vx_min = float(normalizer.state_min[0])
-        return cls(margin_mps, released, max(float(normalizer.state_max[0]) - vx_min, 1e-9))
+        released, _, vx_span = pedal_frame(normalizer)
+        return cls(margin_mps, released, vx_span)
 
     def reset(self, v_prev: np.ndarray) -> None:
         """A run starts on the side its first pedal is on (released: the throttle's)."""

@@ -72,8 +72,7 @@ class DEMPC:
             C = check_linearizable(linearization)
         self.C = C
         self.normalizer: MinMaxNormalizer = model.normalizer_
-        self.u_min = np.array([config.steer_wheel_min_deg, config.pedal_min])
-        self.u_max = np.array([config.steer_wheel_max_deg, config.pedal_max])
+        self.u_min, self.u_max = config.input_limits()
         settings = config.qp_settings(self.normalizer)
         self._dv_max = settings["dv_max"]  # normalized
         self._input_bounds = (settings["v_min"], settings["v_max"])

@@ -20,7 +20,7 @@ from controllers.clock import held
 from controllers.condensed_qp import QPSolution
 from controllers.linearization import BilinearLinearization, SecantInputs
 from controllers.path_following import PathTracking, Where
-from controllers.pedal_sides import PEDAL
+from controllers.pedal_sides import PEDAL, pedal_frame
 from controllers.time_varying_qp import TimeVaryingQP
 from harness.core.contracts import LinearizableModel
 from harness.core.episode import MinMaxNormalizer
@@ -51,9 +51,7 @@ class BrakeRelease:
 
     def __init__(self, normalizer: MinMaxNormalizer, C: np.ndarray) -> None:
         self.C = C
-        self.pedal_zero = float(normalizer.inputs(np.zeros(INPUTS))[PEDAL])
-        vx_min = float(normalizer.state_min[0])
-        vx_span = max(float(normalizer.state_max[0]) - vx_min, 1e-9)
+        self.pedal_zero, vx_min, vx_span = pedal_frame(normalizer)
         self.below = (RELEASE_BELOW_MPS - vx_min) / vx_span  # normalized throughout
         self.margin = RELEASE_MARGIN_MPS / vx_span
 
