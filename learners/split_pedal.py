@@ -40,7 +40,14 @@ from learners.base import (
 from learners.model_file import learner_class
 from learners.settings import plain, settle
 
-__all__ = ["SplitPedal", "pedal_column", "split_inputs", "split_normalizer", "split_pedal"]
+__all__ = [
+    "SplitPedal",
+    "inner_learner",
+    "pedal_column",
+    "split_inputs",
+    "split_normalizer",
+    "split_pedal",
+]
 
 SPLIT_NAMES = ("throttle", "brake")
 SPLIT_ROLES = ("drive", "brake")
@@ -107,7 +114,7 @@ def split_normalizer(normalizer: MinMaxNormalizer, column: int) -> MinMaxNormali
     )
 
 
-def _inner_learner(value: Any) -> Learner:
+def inner_learner(value: Any) -> Learner:
     """``learner.inner`` as a learner: built (Hydra's ``_target_``), or its settings with
     ``_target_`` (its schema's node, a mapping), built here."""
     if isinstance(value, Learner):
@@ -131,7 +138,7 @@ class SplitPedalConfig:
     pedal: str = "pedal"  # the signed throttle/brake input to split
 
     def __post_init__(self) -> None:
-        inner = _inner_learner(self.inner)
+        inner = inner_learner(self.inner)
         if isinstance(inner, SplitPedal):
             raise ValueError("learner.inner is a split_pedal learner already: split the pedal once")
         if not isinstance(self.pedal, str) or not self.pedal:
