@@ -16,7 +16,8 @@ and ``tracking…quality``: steering reversals per minute, throttle-brake change
 per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
 each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
 at 80 km/h, the plant against each fitted model (the models of the arms; an arm with another data
-setting, such as ``data.pedal_gains``, has a dataset key and models of its own).
+setting, such as ``data.pedal_gains``, has a dataset key and models of its own); ``--slalom``
+how much each swings vx through a slalom at a constant brake, where the plant barely does.
 The findings of docs/findings/smooth_driving.md ran on this. Run arms two at a time on two
 cores (one thread each).
 """
@@ -232,6 +233,57 @@ def pedal_slopes(learner: str, seeds: Sequence[int], speed_mps: float = 22.2) ->
     return "\n".join(lines)
 
 
+SLALOM = {"speed_mps": 12.0, "steer_deg": 80.0, "frequency_hz": 0.6, "brake_mpa": 0.9, "s": 3.0}
+
+
+def slalom_swings(learner: str, seeds: Sequence[int]) -> str:
+    """How much each model swings vx through a slalom at a constant brake, against the plant:
+    the RMS of vx about its linear trend after the first second (m/s), by ``predict`` and, for a
+    lifted-linear model, by the read-out C z that DE-MPC predicts with; and the mean
+    deceleration (m/s²). A car's cornering drag is even in the steering: it barely swings."""
+    from harness.core.contracts import dynamics_of
+    from harness.plant import Sedan
+    from learners.model_file import load
+
+    dt = 0.01
+    time = np.arange(round(SLALOM["s"] / dt)) * dt
+    steer = SLALOM["steer_deg"] * np.sin(2 * np.pi * SLALOM["frequency_hz"] * time)
+    inputs = np.c_[steer, np.full_like(time, -SLALOM["brake_mpa"])]
+    plant = Sedan()
+    states = [plant.reset(speed_mps=SLALOM["speed_mps"])]
+    states += [plant.step(u) for u in inputs]
+    truth = np.array(states)
+    clock = np.arange(len(truth)) * dt
+
+    def swing(vx: np.ndarray) -> str:
+        fit = np.polyfit(clock, vx, 1)
+        residual = vx - np.polyval(fit, clock)
+        return f"{np.sqrt(np.mean(residual[round(1 / dt) :] ** 2)):.3f} | {fit[0]:+.2f}"
+
+    lines = [
+        "| model | vx swing m/s | mean decel. m/s² | read-out C z: swing | decel. |",
+        "|---|---|---|---|---|",
+        f"| plant | {swing(truth[:, 0])} | - | - |",
+    ]
+    for seed in seeds:
+        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):
+            model = load(path)
+            readout = "- | -"
+            if dynamics_of(model) == "linear":
+                normalizer = model.normalizer_
+                z, lifted = model.lift(truth[0]), [truth[0]]
+                for v in normalizer.inputs(inputs):
+                    z = model.A_ @ z + model.B_ @ v
+                    lifted.append(normalizer.states_inverse(model.C_ @ z))
+                readout = swing(np.array(lifted)[:, 0])
+            data = path.stem.rsplit("_", 1)[-1]
+            predicted = model.predict(truth[0], inputs)[:, 0]
+            lines.append(
+                f"| {learner} seed {seed} (data {data}) | {swing(predicted)} | {readout} |"
+            )
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arm", default="today")
@@ -243,7 +295,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--slopes", action="store_true", help="the pedal's effect, plant against the models"
     )
+    parser.add_argument(
+        "--slalom", action="store_true", help="vx through a slalom, plant against the models"
+    )
     args, overrides = parser.parse_known_args(argv)
+    if args.slalom:
+        for learner in args.learners.split(","):
+            print(slalom_swings(learner, [int(s) for s in args.seeds.split(",")]))
+        return
     if args.slopes:
         seeds = [int(s) for s in args.seeds.split(",")]
         for learner in args.learners.split(","):
