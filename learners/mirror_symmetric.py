@@ -33,10 +33,9 @@ import torch
 
 from harness.core.contracts import Dynamics
 from harness.core.episode import STEERING_ROLES, Episode, InputChannel, MinMaxNormalizer
-from learners.base import INPUT_DIM, STATE_DIM, Learner, Shape, check_rollout_args
-from learners.model_file import learner_class
-from learners.settings import plain, settle
-from learners.split_pedal import inner_learner
+from learners.base import INPUT_DIM, STATE_DIM, check_rollout_args
+from learners.settings import settle
+from learners.wrapping import WrappingLearner, inner_learner
 
 __all__ = ["STATE_MIRROR", "MirrorSymmetric", "input_mirror"]
 
@@ -81,7 +80,7 @@ class MirrorSymmetricConfig:
         settle(self, inner=inner)
 
 
-class MirrorSymmetric(Learner):
+class MirrorSymmetric(WrappingLearner):
     """``inner`` averaged with its mirror image: a lifted-linear model, symmetric by
     construction (module docstring)."""
 
@@ -89,21 +88,6 @@ class MirrorSymmetric(Learner):
     config_class: ClassVar[type] = MirrorSymmetricConfig
     config: MirrorSymmetricConfig
     dynamics: ClassVar[Dynamics] = "linear"
-
-    def __init__(self, *args: Any, **settings: Any) -> None:
-        super().__init__(*args, **settings)
-        self.inner: Learner = self.config.inner
-
-    @property
-    def hyperparameters(self) -> dict[str, Any]:
-        """The inner learner's class and settings."""
-        inner = type(self.inner)
-        return {"inner_class": f"{inner.__module__}.{inner.__qualname__}", **plain(self.config)}
-
-    @classmethod
-    def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
-        inner_class = learner_class(str(hyperparameters.get("inner_class", "")), cls.name)
-        return cls(inner_class.from_hyperparameters(hyperparameters["inner"]))
 
     # -- the learner contract ---------------------------------------------------------------------
 
@@ -133,18 +117,6 @@ class MirrorSymmetric(Learner):
         """Every input's role known (which of them steer), before any data."""
         input_mirror(channels, "the data")
         self.inner.check_inputs(channels)
-
-    @property
-    def core(self) -> Learner:
-        return self.inner
-
-    @property
-    def redraws_random_layer(self) -> bool:
-        return self.inner.redraws_random_layer
-
-    @property
-    def fit_summary(self) -> dict[str, Any]:
-        return self.inner.fit_summary
 
     # -- the model DE-MPC reads -------------------------------------------------------------------
 
@@ -188,13 +160,5 @@ class MirrorSymmetric(Learner):
 
     # -- the file ---------------------------------------------------------------------------------
 
-    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
-        return {f"inner.{k}": value for k, value in self.inner._state().items()}
-
-    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
-        return {f"inner.{k}": shape for k, shape in self.inner._state_shapes(n, m).items()}
-
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
-        self.inner.normalizer_ = self.normalizer_
-        self.inner._set_state({k.removeprefix("inner."): v for k, v in state.items()})
-        self._read_inner()
+        self._set_inner_state(state, self.normalizer_)

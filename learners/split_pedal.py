@@ -33,16 +33,13 @@ from harness.core.episode import Episode, InputChannel, MinMaxNormalizer
 from learners.base import (
     INPUT_DIM,
     STATE_DIM,
-    Learner,
-    Shape,
     check_rollout_args,
 )
-from learners.model_file import learner_class
-from learners.settings import plain, settle
+from learners.settings import settle
+from learners.wrapping import WrappingLearner, inner_learner
 
 __all__ = [
     "SplitPedal",
-    "inner_learner",
     "pedal_column",
     "split_inputs",
     "split_normalizer",
@@ -114,21 +111,6 @@ def split_normalizer(normalizer: MinMaxNormalizer, column: int) -> MinMaxNormali
     )
 
 
-def inner_learner(value: Any) -> Learner:
-    """``learner.inner`` as a learner: built (Hydra's ``_target_``), or its settings with
-    ``_target_`` (its schema's node, a mapping), built here."""
-    if isinstance(value, Learner):
-        return value
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
-    if not (isinstance(value, Mapping) and "_target_" in value):
-        raise ValueError(
-            f"learner.inner must be a learner config (a _target_ in learners), got {value!r:.80}"
-        )
-    settings = {str(k): v for k, v in value.items() if not str(k).startswith("_")}
-    return learner_class(str(value["_target_"]), "learner.inner._target_")(**settings)
-
-
 @dataclass(frozen=True)
 class SplitPedalConfig:
     """The pedal split's settings (``conf/learner/*_split.yaml``): the learner fitted on the
@@ -146,7 +128,7 @@ class SplitPedalConfig:
         settle(self, inner=inner)
 
 
-class SplitPedal(Learner):
+class SplitPedal(WrappingLearner):
     """``inner`` fitted on throttle and brake, used as a model of the pedal (module docstring)."""
 
     name: ClassVar[str] = "split_pedal"
@@ -156,20 +138,7 @@ class SplitPedal(Learner):
 
     def __init__(self, *args: Any, **settings: Any) -> None:
         super().__init__(*args, **settings)
-        self.inner: Learner = self.config.inner
         self.pedal = self.config.pedal
-
-    @property
-    def hyperparameters(self) -> dict[str, Any]:
-        """The inner learner's class and settings, and the pedal."""
-        inner = type(self.inner)
-        return {"inner_class": f"{inner.__module__}.{inner.__qualname__}", **plain(self.config)}
-
-    @classmethod
-    def from_hyperparameters(cls, hyperparameters: Mapping[str, Any]) -> Self:
-        inner_class = learner_class(str(hyperparameters.get("inner_class", "")), "split_pedal")
-        inner = inner_class.from_hyperparameters(hyperparameters["inner"])
-        return cls(inner, str(hyperparameters.get("pedal", "pedal")))
 
     # -- the learner contract ---------------------------------------------------------------------
 
@@ -202,18 +171,6 @@ class SplitPedal(Learner):
     def check_inputs(self, channels: Sequence[InputChannel]) -> None:
         """The pedal named in ``learner.pedal`` among the data's inputs, before any data."""
         pedal_column([c.name for c in channels], self.pedal, "the data config")
-
-    @property
-    def core(self) -> Learner:
-        return self.inner
-
-    @property
-    def redraws_random_layer(self) -> bool:
-        return self.inner.redraws_random_layer
-
-    @property
-    def fit_summary(self) -> dict[str, Any]:
-        return self.inner.fit_summary
 
     # -- the model DE-MPC reads -------------------------------------------------------------------
 
@@ -291,14 +248,9 @@ class SplitPedal(Learner):
 
     # -- the file ---------------------------------------------------------------------------------
 
-    def _state(self) -> dict[str, np.ndarray | torch.Tensor]:
-        return {f"inner.{k}": value for k, value in self.inner._state().items()}
-
-    def _state_shapes(self, n: int, m: int) -> dict[str, Shape]:
-        return {f"inner.{k}": shape for k, shape in self.inner._state_shapes(n, m + 1).items()}
+    def _inner_input_count(self, m: int) -> int:
+        return m + 1  # the pedal as two
 
     def _set_state(self, state: Mapping[str, torch.Tensor]) -> None:
         self._column = pedal_column(self.normalizer_.input_names, self.pedal, "the model file")
-        self.inner.normalizer_ = split_normalizer(self.normalizer_, self._column)
-        self.inner._set_state({k.removeprefix("inner."): v for k, v in state.items()})
-        self._read_inner()
+        self._set_inner_state(state, split_normalizer(self.normalizer_, self._column))
