@@ -23,6 +23,7 @@ from harness.core.episode import Episode, MinMaxNormalizer
 from harness.core.paths import CONF_DIR
 from learners import Learner
 from learners import load as load_learner
+from learners.wrapping import WrappingLearner
 from tests.helpers import learner_config
 from tests.toydata import drive_episodes
 
@@ -48,14 +49,18 @@ TINY: dict[str, list[str]] = {
     "learners.deep_edmd.DeepEDMD": _NETWORK,
     "learners.bilinear_deep_edmd.BilinearDeepEDMD": _NETWORK,
 }
-# Learners that wrap another (learner.inner): the inner learner's row, under learner.inner.
-WRAPPERS = ("learners.split_pedal.SplitPedal", "learners.mirror_symmetric.MirrorSymmetric")
+
+
+def _wraps(target: str) -> bool:
+    """Whether the class a YAML names wraps another learner (learner.inner): its tiny settings
+    are its inner learner's row, under learner.inner."""
+    return issubclass(get_class(target), WrappingLearner)
 
 
 def tiny(name: str) -> list[str]:
     """The tiny settings of ``conf/learner/<name>.yaml``'s class (its inner one's, moved)."""
     cfg = learner_config(name)
-    if cfg._target_ not in WRAPPERS:
+    if not _wraps(cfg._target_):
         return TINY[cfg._target_]
     return [o.replace("learner.", "learner.inner.", 1) for o in TINY[cfg.inner._target_]]
 
@@ -72,7 +77,7 @@ def drives() -> dict:
 
 
 def test_every_learner_class_of_conf_has_its_tiny_settings() -> None:
-    targets = {learner_config(name)._target_ for name in NAMES} - set(WRAPPERS)
+    targets = {t for t in (learner_config(name)._target_ for name in NAMES) if not _wraps(t)}
     targets |= {learner_config(n).inner._target_ for n in NAMES if "inner" in learner_config(n)}
     missing = targets - set(TINY)
     assert missing == set(), f"add a row to TINY in {__file__} for {sorted(missing)}"
