@@ -17,7 +17,8 @@ per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
 each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
 at 80 km/h, the plant against each fitted model (the models of the arms; an arm with another data
 setting, such as ``data.pedal_gains``, has a dataset key and models of its own); ``--slalom``
-how much each swings vx through a slalom at a constant brake, where the plant barely does.
+how much each swings vx through a slalom at a constant brake, where the plant barely does;
+``--steering`` the yaw rate a wheel step gives at 80 km/h.
 The findings of docs/findings/smooth_driving.md ran on this. Run arms two at a time on two
 cores (one thread each).
 """
@@ -284,6 +285,49 @@ def slalom_swings(learner: str, seeds: Sequence[int]) -> str:
     return "\n".join(lines)
 
 
+STEER_STEP = {"speed_mps": 22.2, "steer_deg": 20.0, "throttle": 0.05, "steps": (1, 3, 10, 40)}
+
+
+def steering_steps(learner: str, seeds: Sequence[int]) -> str:
+    """The yaw rate (rad/s) a held wheel step gives at 80 km/h after 1 to 40 steps, the plant
+    against each model: by ``predict`` and, for a lifted-linear model, by the read-out C z that
+    DE-MPC predicts with. A controller that believes the wheel does little moves it a lot."""
+    from harness.core.contracts import dynamics_of
+    from harness.plant import Sedan
+    from learners.model_file import load
+
+    steps = STEER_STEP["steps"]
+    inputs = np.tile([STEER_STEP["steer_deg"], STEER_STEP["throttle"]], (max(steps), 1))
+    plant = Sedan()
+    states = [plant.reset(speed_mps=STEER_STEP["speed_mps"])]
+    states += [plant.step(u) for u in inputs]
+    truth = np.array(states)
+
+    def cells(x: np.ndarray) -> str:
+        return " / ".join(f"{x[k, 2]:+.3f}" for k in steps)
+
+    lines = [
+        f"| model | yaw rate after {' / '.join(map(str, steps))} steps | read-out C z |",
+        "|---|---|---|",
+        f"| plant | {cells(truth)} | - |",
+    ]
+    for seed in seeds:
+        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):
+            model = load(path)
+            readout = "-"
+            if dynamics_of(model) == "linear":
+                normalizer = model.normalizer_
+                z, lifted = model.lift(truth[0]), [truth[0]]
+                for v in normalizer.inputs(inputs):
+                    z = model.A_ @ z + model.B_ @ v
+                    lifted.append(normalizer.states_inverse(model.C_ @ z))
+                readout = cells(np.array(lifted))
+            data = path.stem.rsplit("_", 1)[-1]
+            predicted = cells(model.predict(truth[0], inputs))
+            lines.append(f"| {learner} seed {seed} (data {data}) | {predicted} | {readout} |")
+    return "\n".join(lines)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arm", default="today")
@@ -298,7 +342,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument(
         "--slalom", action="store_true", help="vx through a slalom, plant against the models"
     )
+    parser.add_argument(
+        "--steering", action="store_true", help="a wheel step at 80 km/h, plant against the models"
+    )
     args, overrides = parser.parse_known_args(argv)
+    if args.steering:
+        for learner in args.learners.split(","):
+            print(steering_steps(learner, [int(s) for s in args.seeds.split(",")]))
+        return
     if args.slalom:
         for learner in args.learners.split(","):
             print(slalom_swings(learner, [int(s) for s in args.seeds.split(",")]))
