@@ -31,7 +31,7 @@ import os
 import sys
 import tempfile
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -235,6 +235,40 @@ def pedal_slopes(learner: str, seeds: Sequence[int], speed_mps: float = 22.2) ->
 
 
 SLALOM = {"speed_mps": 12.0, "steer_deg": 80.0, "frequency_hz": 0.6, "brake_mpa": 0.9, "s": 3.0}
+STEER_STEP = {"speed_mps": 22.2, "steer_deg": 20.0, "throttle": 0.05, "steps": (1, 3, 10, 40)}
+
+
+def _plant_answer(speed_mps: float, inputs: np.ndarray) -> np.ndarray:
+    """The sedan's states (T + 1, 3) from ``speed_mps`` straight ahead under ``inputs``."""
+    from harness.plant import Sedan
+
+    plant = Sedan()
+    states = [plant.reset(speed_mps=speed_mps)]
+    states += [plant.step(u) for u in inputs]
+    return np.array(states)
+
+
+def _model_answers(
+    learner: str, seeds: Sequence[int], x0: np.ndarray, inputs: np.ndarray
+) -> Iterator[tuple[str, np.ndarray, np.ndarray | None]]:
+    """Per fitted model of the arms: its name, its ``predict`` from ``x0`` under ``inputs`` and,
+    for a lifted-linear model, its read-out C z (what DE-MPC predicts with; None otherwise)."""
+    from harness.core.contracts import dynamics_of
+    from learners.model_file import load
+
+    for seed in seeds:
+        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):  # one per dataset
+            model = load(path)
+            readout = None
+            if dynamics_of(model) == "linear":
+                normalizer = model.normalizer_
+                z, lifted = model.lift(x0), [x0]
+                for v in normalizer.inputs(inputs):
+                    z = model.A_ @ z + model.B_ @ v
+                    lifted.append(normalizer.states_inverse(model.C_ @ z))
+                readout = np.array(lifted)
+            name = f"{learner} seed {seed} (data {path.stem.rsplit('_', 1)[-1]})"
+            yield name, model.predict(x0, inputs), readout
 
 
 def slalom_swings(learner: str, seeds: Sequence[int]) -> str:
@@ -242,18 +276,11 @@ def slalom_swings(learner: str, seeds: Sequence[int]) -> str:
     the RMS of vx about its linear trend after the first second (m/s), by ``predict`` and, for a
     lifted-linear model, by the read-out C z that DE-MPC predicts with; and the mean
     deceleration (m/s²). A car's cornering drag is even in the steering: it barely swings."""
-    from harness.core.contracts import dynamics_of
-    from harness.plant import Sedan
-    from learners.model_file import load
-
     dt = 0.01
     time = np.arange(round(SLALOM["s"] / dt)) * dt
     steer = SLALOM["steer_deg"] * np.sin(2 * np.pi * SLALOM["frequency_hz"] * time)
     inputs = np.c_[steer, np.full_like(time, -SLALOM["brake_mpa"])]
-    plant = Sedan()
-    states = [plant.reset(speed_mps=SLALOM["speed_mps"])]
-    states += [plant.step(u) for u in inputs]
-    truth = np.array(states)
+    truth = _plant_answer(SLALOM["speed_mps"], inputs)
     clock = np.arange(len(truth)) * dt
 
     def swing(vx: np.ndarray) -> str:
@@ -266,42 +293,19 @@ def slalom_swings(learner: str, seeds: Sequence[int]) -> str:
         "|---|---|---|---|---|",
         f"| plant | {swing(truth[:, 0])} | - | - |",
     ]
-    for seed in seeds:
-        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):
-            model = load(path)
-            readout = "- | -"
-            if dynamics_of(model) == "linear":
-                normalizer = model.normalizer_
-                z, lifted = model.lift(truth[0]), [truth[0]]
-                for v in normalizer.inputs(inputs):
-                    z = model.A_ @ z + model.B_ @ v
-                    lifted.append(normalizer.states_inverse(model.C_ @ z))
-                readout = swing(np.array(lifted)[:, 0])
-            data = path.stem.rsplit("_", 1)[-1]
-            predicted = model.predict(truth[0], inputs)[:, 0]
-            lines.append(
-                f"| {learner} seed {seed} (data {data}) | {swing(predicted)} | {readout} |"
-            )
+    for name, predicted, readout in _model_answers(learner, seeds, truth[0], inputs):
+        lifted = "- | -" if readout is None else swing(readout[:, 0])
+        lines.append(f"| {name} | {swing(predicted[:, 0])} | {lifted} |")
     return "\n".join(lines)
-
-
-STEER_STEP = {"speed_mps": 22.2, "steer_deg": 20.0, "throttle": 0.05, "steps": (1, 3, 10, 40)}
 
 
 def steering_steps(learner: str, seeds: Sequence[int]) -> str:
     """The yaw rate (rad/s) a held wheel step gives at 80 km/h after 1 to 40 steps, the plant
     against each model: by ``predict`` and, for a lifted-linear model, by the read-out C z that
     DE-MPC predicts with. A controller that believes the wheel does little moves it a lot."""
-    from harness.core.contracts import dynamics_of
-    from harness.plant import Sedan
-    from learners.model_file import load
-
     steps = STEER_STEP["steps"]
     inputs = np.tile([STEER_STEP["steer_deg"], STEER_STEP["throttle"]], (max(steps), 1))
-    plant = Sedan()
-    states = [plant.reset(speed_mps=STEER_STEP["speed_mps"])]
-    states += [plant.step(u) for u in inputs]
-    truth = np.array(states)
+    truth = _plant_answer(STEER_STEP["speed_mps"], inputs)
 
     def cells(x: np.ndarray) -> str:
         return " / ".join(f"{x[k, 2]:+.3f}" for k in steps)
@@ -311,20 +315,9 @@ def steering_steps(learner: str, seeds: Sequence[int]) -> str:
         "|---|---|---|",
         f"| plant | {cells(truth)} | - |",
     ]
-    for seed in seeds:
-        for path in sorted(MODELS.glob(f"{learner}_seed{seed}_*.pt")):
-            model = load(path)
-            readout = "-"
-            if dynamics_of(model) == "linear":
-                normalizer = model.normalizer_
-                z, lifted = model.lift(truth[0]), [truth[0]]
-                for v in normalizer.inputs(inputs):
-                    z = model.A_ @ z + model.B_ @ v
-                    lifted.append(normalizer.states_inverse(model.C_ @ z))
-                readout = cells(np.array(lifted))
-            data = path.stem.rsplit("_", 1)[-1]
-            predicted = cells(model.predict(truth[0], inputs))
-            lines.append(f"| {learner} seed {seed} (data {data}) | {predicted} | {readout} |")
+    for name, predicted, readout in _model_answers(learner, seeds, truth[0], inputs):
+        lifted = "-" if readout is None else cells(readout)
+        lines.append(f"| {name} | {cells(predicted)} | {lifted} |")
     return "\n".join(lines)
 
 
