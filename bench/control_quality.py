@@ -3,9 +3,10 @@
 ``python -m bench.control_quality --arm NAME [overrides...] --learners deep_edmd,dnn,input_edmd
 --seeds 0,1,2 --jsonl FILE`` composes the main job as ``python -m harness`` would (``conf/``,
 ``data=default``), fits each learner once per seed (kept in ``~/.cache/koopman-harness/bench/``,
-so that every arm drives the same models), then drives the main controller and the physics
-baseline beside it (``bicycle_mpc_path_long_offset_free``, identified from the same drives)
-through the job's references: the test drive and the 80 km/h lane change. The overrides are
+so that every arm drives the same models; an arm's ``learner.`` overrides fit models of their
+own), then drives the main controller and the physics baseline beside it
+(``bicycle_mpc_path_long_offset_free``, identified from the same drives) through the job's
+references: the test drive and the 80 km/h lane change. The overrides are
 Hydra's and apply to the main controller (``controller.R=[5000,50]``); ``--both`` applies each
 ``controller.`` override to the baseline too, so that a change meant for every controller is
 judged against the baseline it would give.
@@ -26,6 +27,7 @@ cores (one thread each).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -83,11 +85,20 @@ def _yaml(text: str) -> Any:
     return yaml.safe_load(text)
 
 
-def _fitted(cfg: Any, pipeline: Any, dataset: Any, learner: str, seed: int) -> Any:
-    """The learner fitted on the dataset's training drives, once per (learner, seed, data)."""
+def _model_name(learner: str, overrides: Sequence[str]) -> str:
+    """The kept model's name: the preset's, and a digest of the arm's ``learner.`` overrides,
+    so that an arm that changes the learner fits its own model instead of driving the preset's."""
+    changed = sorted(o for o in overrides if o.lstrip("+~").startswith("learner."))
+    if not changed:
+        return learner
+    return f"{learner}-{hashlib.sha1(' '.join(changed).encode()).hexdigest()[:8]}"
+
+
+def _fitted(pipeline: Any, dataset: Any, name: str, seed: int) -> Any:
+    """The learner fitted on the dataset's training drives, once per (model name, seed, data)."""
     from learners.model_file import load
 
-    path = MODELS / f"{learner}_seed{seed}_{dataset.key}.pt"
+    path = MODELS / f"{name}_seed{seed}_{dataset.key}.pt"
     if path.exists():
         return load(path)
     fitted = pipeline.learner.fit(dataset.train, dataset.validation, dataset.normalizer)
@@ -119,7 +130,7 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
         raise ValueError("bench.control_quality drives the sedan: data= must be a preset, not logs")
     directory, _ = collect_counted(plant, data, DriverKnowledge.of(plant.params), progress=False)
     dataset = load(directory)
-    model = _fitted(cfg, pipeline, dataset, learner, seed)
+    model = _fitted(pipeline, dataset, _model_name(learner, overrides), seed)
     models = loops.models(model, dataset)
     loops.reuse_baseline_runs = False
     with tempfile.TemporaryDirectory() as output:
