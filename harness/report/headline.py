@@ -158,8 +158,10 @@ def main_job(study: Path) -> str:
         own = runs[runs.learner == learner]
         for controller in (MAIN, PAPER):
             lines.append(_main_row(learner, own, controller, jobs[jobs.learner == learner]))
-    # The baselines are fitted on the same drives whatever the learner: one row each, per seed.
-    first = runs[runs.learner == sorted(set(jobs.learner))[0]]
+    # The baselines are fitted on the same drives whatever the learner: one row each, from the
+    # main learner's jobs where the study has them (another learner added leaves the row as is).
+    learners = sorted(set(jobs.learner))
+    first = runs[runs.learner == (MAIN_LEARNER if MAIN_LEARNER in learners else learners[0])]
     for controller in (MAIN_BASELINE, PAPER_BASELINE):
         lines.append(_main_row(f"{BASELINE} (the physics baseline)", first, controller, None))
     lines.append(
