@@ -30,9 +30,10 @@ from harness.core.files import (
     unlock_directory,
     write_json_atomic,
 )
+from harness.core.kernels import in_force, why_not_same_everywhere
 from harness.core.paths import CONF_DIR
 from harness.core.phases import seconds
-from harness.core.threads import use_threads
+from harness.core.threads import threads_in_use, use_threads
 from harness.output import update_metrics
 from harness.report.jobs import FINISHED, config_digest, job_dirname
 from harness.report.summary import summary, title
@@ -52,12 +53,16 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
         integer("threads", threads, 1)
     # Before any work: the same numbers whatever OMP_NUM_THREADS says (harness/core/threads.py).
     threads_set = use_threads(threads)
+    kernels = in_force()  # the same digits on every machine, where they are the pinned set
+    if not kernels["same_everywhere"]:
+        log.warning("kernels: %s", why_not_same_everywhere())
     plant = instantiate(cfg.plant)
     make_recorder = instantiate(cfg.recorder)
     task = instantiate(cfg.task)
     start = time.perf_counter()
     with make_recorder(path=output_dir / f"{task_name}.rrd") as recorder:
         sections = task(plant=plant, recorder=recorder, output_dir=output_dir)
+    sections["run"] = {"threads": threads_in_use(), "kernels": kernels}
     for section, values in sections.items():
         document = update_metrics(output_dir / "metrics.json", section, values)
     log.info(

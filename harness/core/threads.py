@@ -18,44 +18,70 @@ from __future__ import annotations
 
 import ctypes
 import os
+from functools import cache
 from pathlib import Path
 from typing import Any
 
-# Setter and getter names of the OpenBLAS builds NumPy and SciPy ship (64- and 32-bit ints).
-_SYMBOLS = (
-    ("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
-    ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
-    ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
-    ("openblas_set_num_threads", "openblas_get_num_threads"),
+# Name prefixes and suffixes of the OpenBLAS builds NumPy and SciPy ship (64- and 32-bit ints):
+# each exports <prefix>set_num_threads<suffix>, get_num_threads and get_corename.
+_BUILDS = (
+    ("scipy_openblas_", "64_"),
+    ("scipy_openblas_", ""),
+    ("openblas_", "64_"),
+    ("openblas_", ""),
 )
-_libraries: list[tuple[Any, Any]] | None = None
 
 
+@cache
+def _loaded() -> list[tuple[Any, str, str]]:
+    """Every OpenBLAS mapped into this process, with its symbols' prefix and suffix (found
+    once, after import)."""
+    import numpy  # noqa: F401  (both libraries are mapped once these are imported)
+    import scipy.linalg  # noqa: F401
+
+    found = []
+    maps = Path("/proc/self/maps")
+    paths = (
+        {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line}
+        if maps.exists()
+        else set()
+    )
+    for path in sorted(paths):
+        try:
+            library = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix, suffix in _BUILDS:
+            if hasattr(library, f"{prefix}set_num_threads{suffix}"):
+                found.append((library, prefix, suffix))
+                break
+    return found
+
+
+@cache
 def openblas() -> list[tuple[Any, Any]]:
-    """(set, get) of every OpenBLAS mapped into this process (found once, after import)."""
-    global _libraries
-    if _libraries is None:
-        import numpy  # noqa: F401  (both libraries are mapped once these are imported)
-        import scipy.linalg  # noqa: F401
-
-        found = []
-        maps = Path("/proc/self/maps")
-        paths = (
-            {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line}
-            if maps.exists()
-            else set()
+    """(set, get) of every OpenBLAS mapped into this process (found once: a controller asks
+    twice a step)."""
+    return [
+        (
+            getattr(library, f"{prefix}set_num_threads{suffix}"),
+            getattr(library, f"{prefix}get_num_threads{suffix}"),
         )
-        for path in sorted(paths):
-            try:
-                library = ctypes.CDLL(path)
-            except OSError:
-                continue
-            for setter, getter in _SYMBOLS:
-                if hasattr(library, setter) and hasattr(library, getter):
-                    found.append((getattr(library, setter), getattr(library, getter)))
-                    break
-        _libraries = found
-    return _libraries
+        for library, prefix, suffix in _loaded()
+    ]
+
+
+def openblas_kernels() -> list[str]:
+    """The kernels each loaded OpenBLAS runs (its core name: ``Haswell``, ``SkylakeX``...)."""
+    names = []
+    for library, prefix, suffix in _loaded():
+        corename = getattr(library, f"{prefix}get_corename{suffix}", None)
+        if corename is None:
+            names.append("unknown")
+            continue
+        corename.restype = ctypes.c_char_p
+        names.append(corename().decode())
+    return names
 
 
 def environment_threads() -> int:

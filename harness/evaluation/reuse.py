@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.core.kernels import in_force
 from harness.core.paths import REPO_ROOT
 from harness.core.threads import threads_in_use
 from harness.plant.native import cache_dir
@@ -61,11 +62,12 @@ def code_digest() -> str:
 
 def run_key(parts: Mapping[str, Any], reference: np.ndarray) -> str:
     """The key of one run: ``parts`` (plain values, settings' reprs) and the reference's bytes,
-    with the code and the job's threads."""
+    with the code and the job's threads and kernels."""
     described = {
         **parts,
         "code": code_digest(),
         "threads": threads_in_use(),
+        "kernels": in_force(),
         "reference": hashlib.sha256(np.ascontiguousarray(reference).tobytes()).hexdigest(),
     }
     text = json.dumps(described, sort_keys=True, default=str)

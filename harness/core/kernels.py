@@ -1,0 +1,114 @@
+"""One set of numerical kernels on every x86-64 machine: the same seed, the same numbers.
+
+MKL (PyTorch's BLAS), NumPy's SIMD functions and OpenBLAS (NumPy's and SciPy's) each choose
+their kernels by the CPU they run on: AVX-512 on one machine, AVX2 on another, which sum in
+another order or round ``exp`` in another last bit. Training turns a last bit into another
+network: the main job's Deep EDMD, trained on one Xeon, predicted its first test drive at
+6.06 m/s vx RMSE with MKL's AVX-512 kernels and 5.35 with its AVX2 ones
+(docs/guide/benchmarks.md, "One set of kernels"). So, on any machine with AVX2, the harness
+asks each library for its AVX2 kernels before any of them computes:
+
+- MKL: its conditional-numerical-reproducibility branch AVX2 (``MKL_CBWR``), the same results
+  on every processor that runs it; read at MKL's first call;
+- NumPy: its dispatch above AVX2 off (``NPY_DISABLE_CPU_FEATURES``); read when NumPy is imported;
+- OpenBLAS: its Haswell (AVX2) kernels (``OPENBLAS_CORETYPE``); read when it loads;
+- PyTorch's own kernels and oneDNN: capped at AVX2 (``ATEN_CPU_CAPABILITY``,
+  ``ONEDNN_MAX_CPU_ISA``); read at their first use.
+
+:func:`pin` sets them when ``harness`` is imported. A variable the environment sets already is
+kept; ``KOOPMAN_HARNESS_NATIVE_KERNELS=1`` keeps every library's own choice (training on an
+AVX-512 machine is then up to a fifth faster, and its last digits that machine's). A process
+that imported NumPy before ``harness`` keeps this machine's NumPy and OpenBLAS kernels:
+:func:`in_force` says which ran (``metrics.json``: ``run.kernels``).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+NATIVE = "KOOPMAN_HARNESS_NATIVE_KERNELS"
+# NumPy >= 2.4 dispatches on x86-64 psABI levels: X86_V4 and above is AVX-512.
+NUMPY_ABOVE_AVX2 = ("X86_V4", "AVX512_ICL", "AVX512_SPR")
+PINS = {
+    "MKL_CBWR": "AVX2",
+    "NPY_DISABLE_CPU_FEATURES": " ".join(NUMPY_ABOVE_AVX2),
+    "OPENBLAS_CORETYPE": "Haswell",
+    "ATEN_CPU_CAPABILITY": "avx2",
+    "ONEDNN_MAX_CPU_ISA": "AVX2",
+}
+_numpy_before_pin = False
+
+
+def has_avx2() -> bool:
+    """Whether this is an x86-64 machine whose CPU has AVX2 (read from ``/proc/cpuinfo``;
+    False where it cannot be read: the libraries then choose as they would)."""
+    if platform.machine().lower() not in {"x86_64", "amd64"}:
+        return False
+    try:
+        with Path("/proc/cpuinfo").open() as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("flags"):
+                    return "avx2" in line.split()
+    except OSError:
+        return False
+    return False
+
+
+def pin() -> bool:
+    """Ask every library for its AVX2 kernels (module docstring); True if asked. Call before any
+    of them computes; a variable already set, and ``KOOPMAN_HARNESS_NATIVE_KERNELS=1``, win."""
+    global _numpy_before_pin
+    if os.environ.get(NATIVE, "") not in {"", "0"} or not has_avx2():
+        return False
+    _numpy_before_pin = "numpy" in sys.modules
+    for name, value in PINS.items():
+        os.environ.setdefault(name, value)
+    return True
+
+
+def in_force() -> dict[str, Any]:
+    """The kernels this process computes with: MKL's branch (``native`` when none is set),
+    NumPy's SIMD dispatch targets in use, each loaded OpenBLAS's kernels, PyTorch's CPU
+    capability; ``same_everywhere``: whether they are the pinned set."""
+    import torch
+
+    from harness.core.threads import openblas_kernels
+
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+        numpy_targets = [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+    except ImportError:  # another NumPy layout: say so rather than guess
+        numpy_targets = ["unknown"]
+    kernels: dict[str, Any] = {
+        "mkl": os.environ.get("MKL_CBWR", "native"),
+        "numpy": numpy_targets,
+        "openblas": sorted(set(openblas_kernels())),
+        "torch": torch.backends.cpu.get_cpu_capability(),
+    }
+    kernels["same_everywhere"] = (
+        kernels["mkl"] == PINS["MKL_CBWR"]
+        and not set(numpy_targets) & set(NUMPY_ABOVE_AVX2)
+        and kernels["openblas"] in ([], [PINS["OPENBLAS_CORETYPE"]])
+        and kernels["torch"] in {"AVX2", "DEFAULT"}
+    )
+    return kernels
+
+
+def why_not_same_everywhere() -> str:
+    """One line for a run whose kernels are not the pinned set: what differs and what to do."""
+    if os.environ.get(NATIVE, "") not in {"", "0"}:
+        return f"{NATIVE} is set: this machine's own kernels, whose last digits are its own"
+    if not has_avx2():
+        return "no AVX2 on this CPU (or not x86-64): its own kernels, whose last digits are its own"
+    if _numpy_before_pin:
+        return (
+            "NumPy was imported before harness, so NumPy and OpenBLAS run this machine's kernels "
+            "and the last digits may differ from another machine's: import harness first"
+        )
+    chosen = ", ".join(f"{name}={os.environ[name]}" for name in PINS if name in os.environ)
+    return f"the environment chose the kernels ({chosen}): set as pinned for the same digits"
