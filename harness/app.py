@@ -55,7 +55,7 @@ def run(cfg: DictConfig, output_dir: Path) -> dict:
     threads_set = use_threads(threads)
     kernels = in_force()  # the same digits on every machine, where they are the pinned set
     if not kernels["same_everywhere"]:
-        log.warning("kernels: %s", why_not_same_everywhere())
+        log.warning("kernels: %s", why_not_same_everywhere(kernels))
     plant = instantiate(cfg.plant)
     make_recorder = instantiate(cfg.recorder)
     task = instantiate(cfg.task)

@@ -31,7 +31,7 @@ a = np.random.default_rng(0).normal(size=4096)
 digits = hashlib.sha256(net(x).detach().numpy().tobytes() + np.exp(a).tobytes()
                         + np.arctan2(a, a + 1).tobytes()).hexdigest()
 kernels = in_force()
-why = None if kernels["same_everywhere"] else why_not_same_everywhere()
+why = None if kernels["same_everywhere"] else why_not_same_everywhere(kernels)
 print(json.dumps({"digits": digits, "kernels": kernels, "why": why}))
 """
 
@@ -71,8 +71,10 @@ def test_importing_harness_pins_the_avx2_kernels_and_the_digits_do_not_follow_th
 def test_a_kernel_the_environment_chose_and_the_native_switch_are_kept_and_reported() -> None:
     chosen = _run("import harness", MKL_CBWR="AUTO")
     assert chosen["kernels"]["mkl"] == "AUTO" and not chosen["kernels"]["same_everywhere"]
+    assert chosen["why"].startswith("MKL AUTO") and "set by the environment" in chosen["why"]
     native = _run("import harness", **{NATIVE: "1"})
     assert native["kernels"]["mkl"] == "native" and not native["kernels"]["same_everywhere"]
+    assert NATIVE in native["why"]
 
 
 @needs_avx2

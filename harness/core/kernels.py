@@ -99,16 +99,28 @@ def in_force() -> dict[str, Any]:
     return kernels
 
 
-def why_not_same_everywhere() -> str:
-    """One line for a run whose kernels are not the pinned set: what differs and what to do."""
+def why_not_same_everywhere(kernels: dict[str, Any]) -> str:
+    """One line for a run whose kernels (:func:`in_force`) are not the pinned set: which
+    library differs, why, and what to do."""
+    differs = [
+        f"MKL {kernels['mkl']}" if kernels["mkl"] != PINS["MKL_CBWR"] else "",
+        "NumPy's AVX-512" if set(kernels["numpy"]) & set(NUMPY_ABOVE_AVX2) else "",
+        f"OpenBLAS {'/'.join(kernels['openblas'])}"
+        if kernels["openblas"] not in ([], [PINS["OPENBLAS_CORETYPE"]])
+        else "",
+        f"PyTorch {kernels['torch']}" if kernels["torch"] not in {"AVX2", "DEFAULT"} else "",
+    ]
+    which = ", ".join(d for d in differs if d) + " kernels"
     if os.environ.get(NATIVE, "") not in {"", "0"}:
-        return f"{NATIVE} is set: this machine's own kernels, whose last digits are its own"
+        return f"{which}, as {NATIVE} asks: this machine's last digits"
     if not has_avx2():
-        return "no AVX2 on this CPU (or not x86-64): its own kernels, whose last digits are its own"
+        return f"{which}: no AVX2 on this CPU (or not x86-64), this machine's last digits"
     if _numpy_before_pin:
         return (
-            "NumPy was imported before harness, so NumPy and OpenBLAS run this machine's kernels "
-            "and the last digits may differ from another machine's: import harness first"
+            f"{which}: NumPy was imported before harness, so the last digits may differ from "
+            "another machine's; import harness first"
         )
-    chosen = ", ".join(f"{name}={os.environ[name]}" for name in PINS if name in os.environ)
-    return f"the environment chose the kernels ({chosen}): set as pinned for the same digits"
+    return (
+        f"{which}: set by the environment (or NumPy older than 2.4), so the last digits may "
+        f"differ from another machine's; unset {', '.join(PINS)} for the pinned set"
+    )
