@@ -67,7 +67,16 @@ def edmd_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict
 
 def test_metrics_follow_the_public_contract(edmd_run) -> None:
     _, run_dir, metrics = edmd_run
-    assert set(metrics) == {"data", "training", "prediction", "spectrum", "tracking"}
+    assert set(metrics) == {"data", "training", "prediction", "spectrum", "tracking", "run"}
+    # What the job computed on: its threads, and the kernels that set its last digits.
+    assert metrics["run"]["threads"]["torch"] == 1
+    assert set(metrics["run"]["kernels"]) == {
+        "mkl",
+        "numpy",
+        "openblas",
+        "torch",
+        "same_everywhere",
+    }
     (test_episode,) = metrics["data"]["split"]["test"]
     rmse = metrics["prediction"][test_episode]["rmse"]
     assert set(rmse) == {"vx", "vy", "yaw_rate"} and all(v >= 0 for v in rmse.values())
