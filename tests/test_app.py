@@ -129,12 +129,15 @@ def test_a_run_into_another_runs_directory_moves_its_results_aside_and_never_mer
     shutil.copytree(finished, run_dir)
     with caplog.at_level(logging.WARNING):
         run_job(run_dir, *TINY_COLLECTION, f"data.root={tmp_path}/datasets", cwd=tmp_path)
-    assert set(json.loads((run_dir / "metrics.json").read_text())) == {"data"}
+    assert set(json.loads((run_dir / "metrics.json").read_text())) == {"data", "run"}
     (previous,) = (run_dir / "previous").iterdir()
-    assert set(json.loads((previous / "metrics.json").read_text())) == {"characterize"}
+    assert set(json.loads((previous / "metrics.json").read_text())) == {"characterize", "run"}
     assert (previous / "finished.json").exists() and not (run_dir / "characterize.rrd").exists()
     assert f"moved to {previous}" in caplog.text
-    assert read_run(run_dir).error is None and set(read_run(run_dir).metrics or {}) == {"data"}
+    assert read_run(run_dir).error is None and set(read_run(run_dir).metrics or {}) == {
+        "data",
+        "run",
+    }
 
 
 def test_a_directory_that_cannot_be_written_is_named_with_the_setting_to_change(
