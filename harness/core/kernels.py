@@ -90,18 +90,12 @@ def in_force() -> dict[str, Any]:
         "openblas": sorted(set(openblas_kernels())),
         "torch": torch.backends.cpu.get_cpu_capability(),
     }
-    kernels["same_everywhere"] = (
-        kernels["mkl"] == PINS["MKL_CBWR"]
-        and not set(numpy_targets) & set(NUMPY_ABOVE_AVX2)
-        and kernels["openblas"] in ([], [PINS["OPENBLAS_CORETYPE"]])
-        and kernels["torch"] in {"AVX2", "DEFAULT"}
-    )
+    kernels["same_everywhere"] = not _not_pinned(kernels)
     return kernels
 
 
-def why_not_same_everywhere(kernels: dict[str, Any]) -> str:
-    """One line for a run whose kernels (:func:`in_force`) are not the pinned set: which
-    library differs, why, and what to do."""
+def _not_pinned(kernels: dict[str, Any]) -> list[str]:
+    """The libraries whose kernels (:func:`in_force`) are not the pinned set, named for a run."""
     differs = [
         f"MKL {kernels['mkl']}" if kernels["mkl"] != PINS["MKL_CBWR"] else "",
         "NumPy's AVX-512" if set(kernels["numpy"]) & set(NUMPY_ABOVE_AVX2) else "",
@@ -110,7 +104,13 @@ def why_not_same_everywhere(kernels: dict[str, Any]) -> str:
         else "",
         f"PyTorch {kernels['torch']}" if kernels["torch"] not in {"AVX2", "DEFAULT"} else "",
     ]
-    which = ", ".join(d for d in differs if d) + " kernels"
+    return [library for library in differs if library]
+
+
+def why_not_same_everywhere(kernels: dict[str, Any]) -> str:
+    """One line for a run whose kernels (:func:`in_force`) are not the pinned set: which
+    library differs, why, and what to do."""
+    which = ", ".join(_not_pinned(kernels)) + " kernels"
     if os.environ.get(NATIVE, "") not in {"", "0"}:
         return f"{which}, as {NATIVE} asks: this machine's last digits"
     if not has_avx2():
