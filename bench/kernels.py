@@ -13,28 +13,21 @@ slower). On a CPU without AVX-512 both arms run the same kernels.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 from bench.machine import describe
 from bench.threads import LOOP, TRAINED, _dataset, _train_model
-from harness.core.kernels import NATIVE, PINS
+from bench.threads import _worker as threads_worker
+from harness.core.kernels import NATIVE, unpinned
 
 ARMS = {"pinned": {}, "native": {NATIVE: "1"}}
 
 
 def _worker(arm: str, *args: str) -> dict:
     """``bench.threads``' worker in a fresh process, its kernels chosen there as ``arm`` says."""
-    env = {k: v for k, v in os.environ.items() if k not in {*PINS, NATIVE, "OMP_NUM_THREADS"}}
-    command = [sys.executable, "-m", "bench.threads", "--worker", *args]
-    done = subprocess.run(command, capture_output=True, text=True, env={**env, **ARMS[arm]})
-    if done.returncode != 0:
-        raise RuntimeError(f"{arm} {args} failed:\n{done.stderr[-2000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return threads_worker(*args, env={**unpinned(os.environ), **ARMS[arm]})
 
 
 def main() -> None:

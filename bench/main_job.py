@@ -28,7 +28,7 @@ from pathlib import Path
 
 from bench.machine import describe
 from bench.threads import Busy
-from harness.core.kernels import NATIVE, PINS
+from harness.core.kernels import unpinned
 from harness.core.paths import REPO_ROOT
 
 PHASE = re.compile(r"\]\[harness\]\[INFO\] - (?P<phase>[^:]+): .*\((?P<time>[^()]*)\)$")
@@ -45,8 +45,7 @@ def run_job(code: Path, run_dir: Path, cache: Path, overrides: list[str]) -> dic
     """One main job from checkout ``code``; its wall time, fit time, phases and numbers."""
     # As a user's shell starts it: no thread count, and no kernel this process was pinned to
     # (a checkout that pins its kernels does so itself; an older one runs as it did).
-    unset = {*PINS, NATIVE}
-    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS") and k not in unset}
+    env = {k: v for k, v in unpinned(os.environ).items() if not k.endswith("_NUM_THREADS")}
     env |= {"PYTHONPATH": str(code), "KOOPMAN_HARNESS_CACHE": str(cache)}
     command = [sys.executable, "-m", "harness", "recorder=none", f"hydra.run.dir={run_dir}"]
     start = time.perf_counter()

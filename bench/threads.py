@@ -104,9 +104,10 @@ def loop_worker(model_path: str, threads: int) -> dict:
     return {"ms": 1e3 * (time.perf_counter() - start) / metrics["steps"]}
 
 
-def _worker(*args: str) -> dict:
+def _worker(*args: str, env: dict[str, str] | None = None) -> dict:
+    """A worker in a fresh process, in ``env`` (default: this one's) less ``OMP_NUM_THREADS``."""
     command = [sys.executable, "-m", "bench.threads", "--worker", *args]
-    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    env = {k: v for k, v in (os.environ if env is None else env).items() if k != "OMP_NUM_THREADS"}
     done = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
     if done.returncode != 0:
         raise RuntimeError(f"{args} failed:\n{done.stderr[-2000:]}")

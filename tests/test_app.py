@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from harness.core.files import DirectoryInUseError, lock_directory, try_lock, unlock_directory
-from harness.core.kernels import PINS, has_avx2
+from harness.core.kernels import has_avx2, unpinned
 from tests.helpers import run_job
 
 CHARACTERIZE_KEYS = {
@@ -288,7 +288,7 @@ def test_the_same_seed_gives_the_same_numbers_whatever_the_threads_and_the_cpus_
         "learner.training.curriculum=null",
         "learner.training.progress=false",
     ]
-    clean = {k: v for k, v in os.environ.items() if k not in {"OMP_NUM_THREADS", *PINS}}
+    clean = {k: v for k, v in unpinned(os.environ).items() if k != "OMP_NUM_THREADS"}
     environments = {
         "threads unset": clean,
         "1 thread": {**clean, "OMP_NUM_THREADS": "1"},

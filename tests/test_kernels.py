@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from harness.core.kernels import NATIVE, PINS, has_avx2
+from harness.core.kernels import NATIVE, has_avx2, unpinned
 
 needs_avx2 = pytest.mark.skipif(not has_avx2(), reason="the kernels are pinned on AVX2 CPUs only")
 
@@ -39,7 +39,7 @@ print(json.dumps({"digits": digits, "kernels": kernels, "why": why}))
 def _run(first: str, **env: str) -> dict:
     """The DIGITS script in a fresh interpreter, ``first`` its first import, the pins unset
     unless ``env`` sets them."""
-    clean = {k: v for k, v in os.environ.items() if k not in {*PINS, NATIVE}}
+    clean = unpinned(os.environ)
     result = subprocess.run(
         [sys.executable, "-c", DIGITS.replace("FIRST", first)],
         env={**clean, **env},

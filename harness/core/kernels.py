@@ -27,6 +27,7 @@ from __future__ import annotations
 import os
 import platform
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -58,11 +59,22 @@ def has_avx2() -> bool:
     return False
 
 
+def native_asked() -> bool:
+    """Whether ``KOOPMAN_HARNESS_NATIVE_KERNELS`` asks for every library's own kernels."""
+    return os.environ.get(NATIVE, "") not in {"", "0"}
+
+
+def unpinned(environment: Mapping[str, str]) -> dict[str, str]:
+    """``environment`` without the pins and the opt-out: what a process started from a shell
+    gets, which pins its kernels itself if it runs this harness (an older commit's does not)."""
+    return {k: v for k, v in environment.items() if k not in {*PINS, NATIVE}}
+
+
 def pin() -> bool:
     """Ask every library for its AVX2 kernels (module docstring); True if asked. Call before any
     of them computes; a variable already set, and ``KOOPMAN_HARNESS_NATIVE_KERNELS=1``, win."""
     global _numpy_before_pin
-    if os.environ.get(NATIVE, "") not in {"", "0"} or not has_avx2():
+    if native_asked() or not has_avx2():
         return False
     _numpy_before_pin = "numpy" in sys.modules
     for name, value in PINS.items():
@@ -111,7 +123,7 @@ def why_not_same_everywhere(kernels: dict[str, Any]) -> str:
     """One line for a run whose kernels (:func:`in_force`) are not the pinned set: which
     library differs, why, and what to do."""
     which = ", ".join(_not_pinned(kernels)) + " kernels"
-    if os.environ.get(NATIVE, "") not in {"", "0"}:
+    if native_asked():
         return f"{which}, as {NATIVE} asks: this machine's last digits"
     if not has_avx2():
         return f"{which}: no AVX2 on this CPU (or not x86-64), this machine's last digits"
