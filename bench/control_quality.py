@@ -2,12 +2,12 @@
 
 ``python -m bench.control_quality --arm NAME [overrides...] --learners deep_edmd,dnn,input_edmd
 --seeds 0,1,2 --jsonl FILE`` composes the main job as ``python -m harness`` would (``conf/``,
-``data=default``), fits each learner once per seed (kept in ``~/.cache/koopman-harness/bench/``,
-so that every arm drives the same models; an arm's ``learner.`` overrides fit models of their
-own), then drives the main controller and the physics baseline beside it
-(``bicycle_mpc_path_long_offset_free``, identified from the same drives) through the job's
-references: the test drive and the 80 km/h lane change. The overrides are
-Hydra's and apply to the main controller (``controller.R=[5000,50]``); ``--both`` applies each
+``data=default``), fits each learner once per seed and set of kernels (kept in
+``~/.cache/koopman-harness/bench/``, so that every arm drives the same models; an arm's
+``learner.`` overrides fit models of their own), then drives the main controller and the
+physics baseline beside it (``bicycle_mpc_path_long_offset_free``, identified from the same
+drives) through the job's references: the test drive and the 80 km/h lane change. The overrides
+are Hydra's and apply to the main controller (``controller.R=[5000,50]``); ``--both`` applies each
 ``controller.`` override to the baseline too, so that a change meant for every controller is
 judged against the baseline it would give.
 
@@ -95,10 +95,13 @@ def _model_name(learner: str, overrides: Sequence[str]) -> str:
 
 
 def _fitted(pipeline: Any, dataset: Any, name: str, seed: int) -> Any:
-    """The learner fitted on the dataset's training drives, once per (model name, seed, data)."""
+    """The learner fitted on the dataset's training drives, once per (model name, seed, data,
+    kernels): a model trained on other kernels is another model (harness/core/kernels.py)."""
+    from harness.core.kernels import in_force
     from learners.model_file import load
 
-    path = MODELS / f"{name}_seed{seed}_{dataset.key}.pt"
+    kernels = hashlib.sha1(json.dumps(in_force(), sort_keys=True).encode()).hexdigest()[:8]
+    path = MODELS / f"{name}_seed{seed}_{dataset.key}_{kernels}.pt"
     if path.exists():
         return load(path)
     fitted = pipeline.learner.fit(dataset.train, dataset.validation, dataset.normalizer)
