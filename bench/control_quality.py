@@ -13,7 +13,8 @@ judged against the baseline it would give.
 
 Each row (``--jsonl`` appends it; ``--table FILE`` prints a file's rows, averaged over seeds):
 the lane change's verdict (max deviation m, cones), the tracking RMSE (vx m/s, yaw rate rad/s),
-and ``tracking…quality``: steering reversals per minute, throttle-brake changes (a count, the
+and ``tracking…quality``: steering reversals per minute (``reversals_stopped``: how many of
+them came below 1 m/s, at a stop), throttle-brake changes (a count, the
 per minute), longitudinal jerk RMS m/s³, steering-wheel rate RMS deg/s,
 each with its ratio to the baseline's in the same arm. ``--slopes`` prints what the pedal does
 at 80 km/h, the plant against each fitted model (the models of the arms; an arm with another data
@@ -44,6 +45,7 @@ BASELINE = "baseline"
 BASELINE_CONFIG = "bicycle_mpc_path_long_offset_free"
 MODELS = Path(os.path.expanduser("~/.cache/koopman-harness/bench/control_quality"))
 COLUMNS = ("reversals", "pedal_changes", "long_jerk", "steer_rate")
+STOPPED_MPS = 1.0  # a reversal below this |vx| is counted as one at a stop (``reversals_stopped``)
 
 
 def _compose(learner: str, seed: int, overrides: Sequence[str], both: bool) -> Any:
@@ -140,7 +142,14 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
         tracking = loops.track(
             models, plant, dataset.test, Recorder(), Path(output), data_key=dataset.key
         )
-    assert tracking is not None
+        assert tracking is not None
+        stopped = {
+            (controller, reference): _reversals_below(
+                Path(output) / f"tracking_{controller}_{name}.npz", STOPPED_MPS
+            )
+            for controller, references in tracking["controllers"].items()
+            for name, reference in zip(loops.references, references, strict=True)
+        }
     rows = []
     for controller, references in tracking["controllers"].items():
         for reference, metrics in references.items():
@@ -159,6 +168,7 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
                     "rmse_vx": metrics["rmse"]["vx"],
                     "rmse_yaw_rate": metrics["rmse"]["yaw_rate"],
                     "reversals": quality["steering_reversals_per_min"],
+                    "reversals_stopped": stopped[controller, reference],
                     "pedal_changes": quality["pedal_changes_per_min"],
                     "long_jerk": quality["long_jerk_rms_mps3"],
                     "steer_rate": quality["steer_rate_rms_deg_s"],
@@ -166,6 +176,19 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
                 }
             )
     return rows
+
+
+def _reversals_below(arrays: Path, speed_mps: float) -> int:
+    """The run's steering reversals (``harness/evaluation/quality.py``'s) at a measured
+    |vx| below ``speed_mps``: a wheel sawing at a stop, where it steers nothing."""
+    from harness.evaluation.quality import STEER_RATE_THRESHOLD_DEG_S
+
+    run = np.load(arrays)
+    dt = float(run["time_s"][1] - run["time_s"][0])
+    rate = np.diff(run["inputs"][:, 0]) / dt
+    fast = np.abs(rate) > STEER_RATE_THRESHOLD_DEG_S
+    signs, slow = np.sign(rate[fast]), np.abs(run["states"][1:, 0][fast]) < speed_mps
+    return int(np.count_nonzero((signs[1:] != signs[:-1]) & slow[1:]))
 
 
 def mean(key: str, rows: Sequence[dict]) -> float:

@@ -188,7 +188,7 @@ class DEMPC:
         z = np.asarray(self.model.lift(x), dtype=float)
         y_ref = self._reference[k + 1 : k + 1 + self.Np].ravel()
         v_prev = self._v_prev
-        w = self._estimate_disturbance(z)
+        w = self._estimate_disturbance(z, abs(float(x[0])))
         if self.delay_steps:  # from here on z, x and pose are those at t + dt, predicted
             z, x, pose = self.clock.ahead(z, x, pose, v_prev, w)
         where: Where | None = None
@@ -291,11 +291,16 @@ class DEMPC:
             self._prepared = self.linearised.prepare(z, v_prev, y_ref, w, where, guess, rows)
         return self.linearised.feedback(self._prepared, z, v_prev, y_ref, w, where), shift
 
-    def _estimate_disturbance(self, z: np.ndarray) -> np.ndarray | None:
+    def _estimate_disturbance(self, z: np.ndarray, speed: float) -> np.ndarray | None:
         """The estimator's w after the last step's one-step prediction error z − ẑ (ẑ with w),
-        so a constant model error is learned and predicted away; None without an estimator."""
+        so a constant model error is learned and predicted away; None without an estimator.
+        Below the estimator's ``min_speed_mps`` (``speed``: the measured |vx|, m/s) it starts
+        again, w = 0: a stopped car's error is no model error (controllers/disturbance.py)."""
         if self.disturbance is None:
             return None
+        if speed < self.disturbance.min_speed_mps:
+            self.disturbance.start(self.C.shape[1])
+            return self.disturbance.w
         error = None if self._z_expected is None else z - self._z_expected
         return self.disturbance.update(error)
 

@@ -50,6 +50,34 @@ def test_a_disturbance_estimate_removes_the_steady_offset(model: LiftedModel) ->
     assert _settled_error(model, KalmanDisturbance(), steps=3000).max() < 1e-6
 
 
+def _held_at_rest(disturbance: DisturbanceEstimator, steps: int = 300) -> float:
+    """The largest |w| the estimator held while the brake holds a car at rest whose model
+    believes its wheel turns it (the toy's steering moves vy and r at any speed), the car asked
+    for a small yaw rate."""
+    model = toy_linear_model()
+    reference = np.tile([0.0, 0.0, 0.02], (steps + 1, 1))
+    controller = DEMPCConfig(disturbance=disturbance, Q=1000.0)(model, 0.01)
+    controller.reset(reference)
+    largest = 0.0
+    for k in range(steps):
+        controller.act(np.zeros(3), k * 0.01)
+        largest = max(largest, float(np.abs(controller.disturbance.w).max()))
+    return largest
+
+
+@pytest.mark.parametrize("estimator", [OffsetFree, KalmanDisturbance])
+def test_a_stopped_car_teaches_the_estimate_nothing(estimator: type) -> None:
+    """Below ``min_speed_mps`` w restarts at zero every step: the one-step error of a stopped
+    car is the model's answer to the last move, which w would feed back as the opposite move."""
+    assert _held_at_rest(estimator()) > 1e-3  # at any speed, the stop's errors are learned
+    assert _held_at_rest(estimator(min_speed_mps=1.0)) == 0.0
+
+
+def test_the_estimate_still_removes_the_offset_above_its_speed() -> None:
+    model = toy_linear_model()
+    assert _settled_error(model, OffsetFree(min_speed_mps=1.0)).max() < 1e-9  # at 20 m/s
+
+
 def test_the_kalman_gain_starts_near_one_and_settles_to_its_steady_state() -> None:
     """Per coordinate, the scalar Riccati recursion: P⁻ = P + q, K = P⁻ / (P⁻ + r)."""
     kalman = KalmanDisturbance(process_variance=1e-4, measurement_variance=1e-2)
@@ -85,6 +113,8 @@ def test_every_estimator_is_fresh_in_each_controller_and_each_run() -> None:
 def test_an_estimators_settings_are_checked(disturbance: type, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         disturbance(**({"gain": 1.5} if disturbance is OffsetFree else {"process_variance": -1}))
+    with pytest.raises(ValueError, match=r"controller\.disturbance\.min_speed_mps must be"):
+        disturbance(min_speed_mps=-1.0)
 
 
 def test_a_disturbance_that_is_no_estimator_is_refused_in_one_line() -> None:
