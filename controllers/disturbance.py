@@ -13,16 +13,17 @@ paper's DE-MPC):
   Kalman filter's: large while w is unknown, settling to the steady-state gain that weighs how
   fast w moves against how noisy a step's error is.
 
-Either can learn only while the car moves: below ``min_speed_mps`` (0, off, by default) DE-MPC
-restarts the estimate (w = 0) every step, as integral action in vehicle speed control is often
-gated (Autoware's PID longitudinal controller integrates above 0.5 m/s). At a stop the car
-answers the wheel as no model quite says, and with gain 1 w feeds the model's answer to the last
-move back as the opposite move: a two-step saw of the wheel. Measured, the gate removes most of
-that saw but costs every model's speed tracking into and out of the stop, the physics baseline's
-too (docs/findings/smooth_driving.md, "The saw at a stop"): off by default.
+Below ``lateral_min_speed_mps``, for a model that steps the state x itself (the DNN, input
+EDMD, the single-track model), DE-MPC drops w's vy and r parts. A stopped car has no lateral
+motion, and its wheel turns it as no model quite says: with gain 1 w fed the model's answer to
+the last wheel move back as the opposite move, a two-step saw of the wheel at a stop. The
+speed's part is kept: it tracks the stop itself (dropping the whole estimate there cost every
+model's speed tracking). A lifted model's w holds the lateral error in its lifted coordinates
+too; dropping only the state's drove Deep EDMD worse, so a lifted w is left whole
+(docs/findings/smooth_driving.md, "The saw at a stop").
 
-A new estimator is one class with ``min_speed_mps``, ``start`` and ``update`` and one block in
-a controller's YAML: DE-MPC asks nothing else of it.
+A new estimator is one class with ``lateral_min_speed_mps``, ``start`` and ``update`` and one
+block in a controller's YAML: DE-MPC asks nothing else of it.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ class DisturbanceEstimator(Protocol):
     """An estimate of the disturbance w in the model's step, updated once a control step."""
 
     w: np.ndarray  # the estimate now (what the next step's preparation predicts with)
-    min_speed_mps: float  # below this |vx| DE-MPC restarts the estimate every step
+    lateral_min_speed_mps: float  # below this |vx| w drops vy's and r's parts (z = x models)
 
     def start(self, size: int) -> None:
         """A new run: w = 0 in a lifted state of ``size`` coordinates."""
@@ -58,14 +59,14 @@ class OffsetFree:
     """w += gain · (z − ẑ): a fixed share of each step's one-step prediction error."""
 
     gain: float = 1.0
-    min_speed_mps: float = 0.0  # 0: learns at any speed
+    lateral_min_speed_mps: float = 0.0  # m/s; 0: the lateral part at any speed
     w: np.ndarray = field(
         default_factory=lambda: np.zeros(0), init=False, repr=False, compare=False
     )
 
     def __post_init__(self) -> None:
         in_range("controller.disturbance.gain", self.gain, 0.0, 1.0, open_low=True)
-        non_negative("controller.disturbance.min_speed_mps", self.min_speed_mps)
+        non_negative("controller.disturbance.lateral_min_speed_mps", self.lateral_min_speed_mps)
 
     def start(self, size: int) -> None:
         self.w = np.zeros(size)
@@ -87,7 +88,7 @@ class KalmanDisturbance:
     process_variance: float = 1e-6
     measurement_variance: float = 1e-5
     initial_variance: float = 1.0
-    min_speed_mps: float = 0.0  # 0: learns at any speed
+    lateral_min_speed_mps: float = 0.0  # m/s; 0: the lateral part at any speed
     w: np.ndarray = field(
         default_factory=lambda: np.zeros(0), init=False, repr=False, compare=False
     )
@@ -98,7 +99,7 @@ class KalmanDisturbance:
     def __post_init__(self) -> None:
         for key in ("process_variance", "measurement_variance", "initial_variance"):
             positive(f"controller.disturbance.{key}", getattr(self, key))
-        non_negative("controller.disturbance.min_speed_mps", self.min_speed_mps)
+        non_negative("controller.disturbance.lateral_min_speed_mps", self.lateral_min_speed_mps)
 
     def start(self, size: int) -> None:
         self.w = np.zeros(size)

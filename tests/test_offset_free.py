@@ -8,6 +8,8 @@ the reference.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
@@ -16,7 +18,7 @@ from hydra.utils import instantiate
 from controllers import DEMPCConfig
 from controllers.disturbance import DisturbanceEstimator, KalmanDisturbance, OffsetFree
 from harness.core.contracts import LiftedModel
-from tests.toy_models import ModelPlant, toy_bilinear_model, toy_linear_model
+from tests.toy_models import ModelPlant, StoppingCar, toy_bilinear_model, toy_linear_model
 
 OFFSET = np.array([15.0, 0.02])  # steering wheel (deg), throttle
 
@@ -50,32 +52,45 @@ def test_a_disturbance_estimate_removes_the_steady_offset(model: LiftedModel) ->
     assert _settled_error(model, KalmanDisturbance(), steps=3000).max() < 1e-6
 
 
-def _held_at_rest(disturbance: DisturbanceEstimator, steps: int = 300) -> float:
-    """The largest |w| the estimator held while the brake holds a car at rest whose model
-    believes its wheel turns it (the toy's steering moves vy and r at any speed), the car asked
-    for a small yaw rate."""
-    model = toy_linear_model()
+def _held_at_rest(model: Any, disturbance: DisturbanceEstimator, steps: int = 300) -> np.ndarray:
+    """The largest |w| per coordinate the estimator held while a car rolls to a stop at
+    0.1 m/s² whatever its inputs (slower than 1 m/s), its model believing its wheel turns it
+    (both toys' steering moves the yaw rate at any speed), asked for a small yaw rate."""
     reference = np.tile([0.0, 0.0, 0.02], (steps + 1, 1))
     controller = DEMPCConfig(disturbance=disturbance, Q=1000.0)(model, 0.01)
     controller.reset(reference)
-    largest = 0.0
+    largest = np.zeros(np.shape(model.C_)[1])
     for k in range(steps):
-        controller.act(np.zeros(3), k * 0.01)
-        largest = max(largest, float(np.abs(controller.disturbance.w).max()))
+        controller.act(np.array([0.9 - 0.001 * k, 0.0, 0.0]), k * 0.01)
+        largest = np.maximum(largest, np.abs(controller.disturbance.w))
     return largest
 
 
 @pytest.mark.parametrize("estimator", [OffsetFree, KalmanDisturbance])
-def test_a_stopped_car_teaches_the_estimate_nothing(estimator: type) -> None:
-    """Below ``min_speed_mps`` w restarts at zero every step: the one-step error of a stopped
-    car is the model's answer to the last move, which w would feed back as the opposite move."""
-    assert _held_at_rest(estimator()) > 1e-3  # at any speed, the stop's errors are learned
-    assert _held_at_rest(estimator(min_speed_mps=1.0)) == 0.0
+def test_a_stopped_car_teaches_a_model_of_x_no_lateral_motion(estimator: type) -> None:
+    """Below ``lateral_min_speed_mps`` a model that steps x itself (z = x) gets w without vy's
+    and r's parts (a stopped car has no lateral motion: the error there is the model's answer
+    to the last wheel move); the speed's part is still learned, for it tracks the stop."""
+    vx, _, r = _held_at_rest(StoppingCar(), estimator())
+    assert min(vx, r) > 1e-4  # at any speed, the stop's errors are learned
+    vx, vy, r = _held_at_rest(StoppingCar(), estimator(lateral_min_speed_mps=1.0))
+    assert vy == 0.0 and r == 0.0
+    assert vx > 1e-4
+
+
+def test_a_lifted_models_estimate_is_left_whole_at_a_stop() -> None:
+    """Its lateral error lives in every lifted coordinate: w is not cut."""
+    model = toy_linear_model()  # z = [x_norm; 1]
+    whole = _held_at_rest(model, OffsetFree())
+    np.testing.assert_array_equal(
+        _held_at_rest(model, OffsetFree(lateral_min_speed_mps=1.0)), whole
+    )
+    assert whole[2] > 1e-4
 
 
 def test_the_estimate_still_removes_the_offset_above_its_speed() -> None:
     model = toy_linear_model()
-    assert _settled_error(model, OffsetFree(min_speed_mps=1.0)).max() < 1e-9  # at 20 m/s
+    assert _settled_error(model, OffsetFree(lateral_min_speed_mps=1.0)).max() < 1e-9  # 20 m/s
 
 
 def test_the_kalman_gain_starts_near_one_and_settles_to_its_steady_state() -> None:
@@ -113,8 +128,8 @@ def test_every_estimator_is_fresh_in_each_controller_and_each_run() -> None:
 def test_an_estimators_settings_are_checked(disturbance: type, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         disturbance(**({"gain": 1.5} if disturbance is OffsetFree else {"process_variance": -1}))
-    with pytest.raises(ValueError, match=r"controller\.disturbance\.min_speed_mps must be"):
-        disturbance(min_speed_mps=-1.0)
+    with pytest.raises(ValueError, match=r"disturbance\.lateral_min_speed_mps must be"):
+        disturbance(lateral_min_speed_mps=-1.0)
 
 
 def test_a_disturbance_that_is_no_estimator_is_refused_in_one_line() -> None:

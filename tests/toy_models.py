@@ -186,3 +186,60 @@ class OwnModelPlant:
     @property
     def fingerprint(self) -> dict[str, Any]:
         return {"plant": "own_model", "model": type(self.model).__name__}
+
+
+DT = 0.01
+THROTTLE_ACCEL = 3.0  # m/s² at full throttle (pedal feature +1)
+BRAKE_ACCEL = 8.0  # m/s² at full brake (feature -1), fading to nothing at standstill
+FADE_MPS = 0.5  # the brake's force ~ tanh(vx / FADE_MPS): it cannot push a stopped car back
+
+
+@dataclass
+class StoppingCar:
+    """vx⁺ = vx + dt·a(f, vx): throttle a = 3 f (f >= 0), brake a = 8 f tanh(vx / 0.5) (f < 0),
+    f the pedal's feature in [-1, 1]; vy and the yaw rate decay, steering turns the car."""
+
+    dynamics: ClassVar[Dynamics] = "nonlinear"
+    normalizer_: MinMaxNormalizer = field(
+        default_factory=lambda: MinMaxNormalizer(
+            np.array([0.0, -2.0, -1.0]),
+            np.array([20.0, 2.0, 1.0]),
+            np.array([-450.0, -1.0]),
+            np.array([450.0, 1.0]),
+        )
+    )
+    C_: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.normalizer_.states(np.asarray(x, dtype=float)), dtype=float)
+
+    def _parts(self, z: np.ndarray, v: np.ndarray) -> tuple[Any, ...]:
+        span_x = self.normalizer_.state_max - self.normalizer_.state_min
+        vx = z[..., 0] * span_x[0] + self.normalizer_.state_min[0]
+        feature = 2.0 * v[..., 1] - 1.0  # input_min -1, input_max 1: v = (f + 1) / 2
+        fade = np.tanh(vx / FADE_MPS)
+        throttle = feature >= 0
+        accel = np.where(throttle, THROTTLE_ACCEL * feature, BRAKE_ACCEL * feature * fade)
+        d_accel_d_f = np.where(throttle, THROTTLE_ACCEL, BRAKE_ACCEL * fade)
+        d_accel_d_vx = np.where(throttle, 0.0, BRAKE_ACCEL * feature * (1 - fade**2) / FADE_MPS)
+        return span_x, accel, d_accel_d_f, d_accel_d_vx
+
+    def step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        span_x, accel, _, _ = self._parts(z, v)
+        out = np.array(z, dtype=float, copy=True)
+        out[..., 0] = z[..., 0] + DT * accel / span_x[0]
+        out[..., 1] = 0.5 + 0.95 * (z[..., 1] - 0.5)
+        out[..., 2] = 0.5 + 0.95 * (z[..., 2] - 0.5) + 0.02 * (v[..., 0] - 0.5)
+        return out
+
+    def linearize(self, z: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        span_x, _, d_accel_d_f, d_accel_d_vx = self._parts(z, v)
+        K = z.shape[0]
+        A = np.zeros((K, 3, 3))
+        A[:, 0, 0] = 1.0 + DT * d_accel_d_vx
+        A[:, 1, 1] = A[:, 2, 2] = 0.95
+        B = np.zeros((K, 3, 2))
+        B[:, 0, 1] = DT * d_accel_d_f * 2.0 / span_x[0]
+        B[:, 2, 0] = 0.02
+        d = self.step(z, v) - np.einsum("kab,kb->ka", A, z) - np.einsum("kaj,kj->ka", B, v)
+        return A, B, d
