@@ -36,7 +36,7 @@ import numpy as np
 
 from harness.core.checks import in_range, non_negative, positive
 
-__all__ = ["DisturbanceEstimator", "KalmanDisturbance", "OffsetFree"]
+__all__ = ["DisturbanceEstimator", "KalmanDisturbance", "OffsetFree", "learned", "without_lateral"]
 
 
 @runtime_checkable
@@ -121,3 +121,28 @@ class KalmanDisturbance:
         q, r = self.process_variance, self.measurement_variance
         settled = (q + math.sqrt(q * q + 4.0 * q * r)) / 2.0
         return settled / (settled + r)
+
+
+def without_lateral(C: np.ndarray) -> np.ndarray | None:
+    """The map that drops w's vy and r parts, for a model that steps the state itself (its
+    read-out C = I, z = x, in the states' order vx, vy, r); None for a lifted model, whose w
+    holds the lateral error in every lifted coordinate and is left whole."""
+    C = np.asarray(C, dtype=float)
+    if C.shape != (3, 3) or not np.array_equal(C, np.eye(3)):
+        return None
+    return np.diag([1.0, 0.0, 0.0])
+
+
+def learned(
+    estimator: DisturbanceEstimator,
+    error: np.ndarray | None,
+    speed: float,
+    drop_lateral: np.ndarray | None,
+) -> np.ndarray:
+    """The estimator's w after ``error``; below its ``lateral_min_speed_mps`` (``speed``: the
+    measured |vx|, m/s) without the lateral part ``drop_lateral`` (:func:`without_lateral`)
+    removes, kept so in the estimator (a stopped car has no lateral motion to explain)."""
+    w = estimator.update(error)
+    if drop_lateral is not None and speed < estimator.lateral_min_speed_mps:
+        w = estimator.w = drop_lateral @ w
+    return w

@@ -28,7 +28,7 @@ import numpy as np
 from controllers.blas import single_threaded
 from controllers.clock import Clock, Plan, Planned
 from controllers.condensed_qp import CondensedQP, QPSolution
-from controllers.disturbance import DisturbanceEstimator
+from controllers.disturbance import DisturbanceEstimator, learned, without_lateral
 from controllers.linearization import check_lifted_model, check_linearizable, linearization_of
 from controllers.path_following import PathTracking, Where
 from controllers.pedal_sides import PedalSides
@@ -99,10 +99,7 @@ class DEMPC:
             )
         # Its own estimator: the config's is a template, shared by every run it builds.
         self.disturbance: DisturbanceEstimator | None = copy.deepcopy(config.disturbance)
-        # For a model that steps the state itself (z = x, C = I), w without vy's and r's parts;
-        # a lifted model's w holds the lateral error in every lifted coordinate (not dropped).
-        steps_x = np.shape(C) == (STATES, STATES) and np.array_equal(C, np.eye(STATES))
-        self._without_lateral = np.diag([1.0, 0.0, 0.0]) if steps_x else None
+        self._without_lateral = without_lateral(C)
         margin = config.pedal_side_margin_mps
         self.pedal_sides = None if margin is None else PedalSides.of(margin, self.normalizer)
         self.delay_steps = COMPUTE_DELAYS[config.compute_delay]
@@ -297,18 +294,11 @@ class DEMPC:
 
     def _estimate_disturbance(self, z: np.ndarray, speed: float) -> np.ndarray | None:
         """The estimator's w after the last step's one-step prediction error z − ẑ (ẑ with w),
-        so a constant model error is learned and predicted away; None without an estimator.
-        Below the estimator's ``lateral_min_speed_mps`` (``speed``: the measured |vx|, m/s) a
-        model that steps x itself gets w without vy's and r's parts: a stopped car has no
-        lateral motion for it to explain (controllers/disturbance.py)."""
+        at the measured |vx| ``speed`` (:func:`controllers.disturbance.learned`); None without."""
         if self.disturbance is None:
             return None
         error = None if self._z_expected is None else z - self._z_expected
-        w = self.disturbance.update(error)
-        stopped = speed < self.disturbance.lateral_min_speed_mps
-        if stopped and self._without_lateral is not None:
-            w = self.disturbance.w = self._without_lateral @ w
-        return w
+        return learned(self.disturbance, error, speed, self._without_lateral)
 
     def _model_step(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         """The model's own next lifted state (no disturbance)."""
