@@ -139,9 +139,9 @@ def learned(
     speed: float,
     drop_lateral: np.ndarray | None,
 ) -> np.ndarray:
-    """The estimator's w after ``error``; below its ``lateral_min_speed_mps`` (``speed``: the
-    measured |vx|, m/s) without the lateral part ``drop_lateral`` (:func:`without_lateral`)
-    removes, kept so in the estimator (a stopped car has no lateral motion to explain)."""
+    """The estimator's w after ``error``. Below its ``lateral_min_speed_mps`` (``speed``: the
+    measured |vx|, m/s) ``drop_lateral`` (:func:`without_lateral`) removes w's lateral part, in
+    the estimator too: a stopped car has no lateral motion to explain."""
     w = estimator.update(error)
     if drop_lateral is not None and speed < estimator.lateral_min_speed_mps:
         w = estimator.w = drop_lateral @ w
