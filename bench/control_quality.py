@@ -181,14 +181,13 @@ def run_arm(arm: str, overrides: Sequence[str], learner: str, seed: int, both: b
 def _reversals_below(arrays: Path, speed_mps: float) -> int:
     """The run's steering reversals (``harness/evaluation/quality.py``'s) at a measured
     |vx| below ``speed_mps``: a wheel sawing at a stop, where it steers nothing."""
-    from harness.evaluation.quality import STEER_RATE_THRESHOLD_DEG_S
+    from harness.evaluation.quality import STEER_RATE_THRESHOLD_DEG_S, reversals
 
     run = np.load(arrays)
     dt = float(run["time_s"][1] - run["time_s"][0])
     rate = np.diff(run["inputs"][:, 0]) / dt
-    fast = np.abs(rate) > STEER_RATE_THRESHOLD_DEG_S
-    signs, slow = np.sign(rate[fast]), np.abs(run["states"][1:, 0][fast]) < speed_mps
-    return int(np.count_nonzero((signs[1:] != signs[:-1]) & slow[1:]))
+    slow = np.abs(run["states"][1:, 0]) < speed_mps
+    return reversals(rate, STEER_RATE_THRESHOLD_DEG_S, where=slow)
 
 
 def mean(key: str, rows: Sequence[dict]) -> float:

@@ -10,7 +10,7 @@ import pytest
 from controllers import DEMPC, DEMPCConfig
 from controllers.disturbance import OffsetFree
 from harness.core.limits import BRAKE_MAX_MPA, THROTTLE_MAX
-from harness.evaluation.quality import control_quality, pedal_changes
+from harness.evaluation.quality import control_quality, pedal_changes, reversals
 from harness.evaluation.tracking import track
 from harness.recorder import Recorder
 from tests.toy_models import ModelPlant, toy_linear_model
@@ -112,3 +112,11 @@ def test_de_mpc_on_its_exact_model_holds_a_constant_speed_without_touching_the_b
     assert quality["pedal_changes_per_min"] == 0 and quality["brake_time_share"] == 0
     assert quality["pedal_increment_limit_share"] == 0
     assert quality["steer_increment_limit_share"] < 0.05  # a feasible reference: off its bound
+
+
+def test_reversals_can_be_counted_where_a_mask_holds() -> None:
+    """Three sign changes of a rate beyond the threshold; the slow one (5) is no sample; the
+    mask keeps the changes that land on its samples: at a stop, say."""
+    rate = np.array([30.0, -30.0, 5.0, 30.0, -30.0])
+    assert reversals(rate, 20.0) == 3
+    assert reversals(rate, 20.0, where=np.array([0, 1, 1, 0, 1], dtype=bool)) == 2

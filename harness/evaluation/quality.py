@@ -32,10 +32,15 @@ PEDAL_DEAD_BAND = 0.02  # |pedal| below it is released (throttle fraction, or MP
 AT_LIMIT = 0.99  # an increment of at least this share of its bound is at the bound
 
 
-def reversals(rate: np.ndarray, threshold: float) -> int:
-    """Sign changes of ``rate`` among its samples with |rate| > ``threshold``."""
-    signs = np.sign(rate[np.abs(rate) > threshold])
-    return int(np.count_nonzero(signs[1:] != signs[:-1]))
+def reversals(rate: np.ndarray, threshold: float, where: np.ndarray | None = None) -> int:
+    """Sign changes of ``rate`` among its samples with |rate| > ``threshold``; with ``where``
+    (a mask of ``rate``'s samples) only the changes that land on a sample it holds."""
+    fast = np.abs(rate) > threshold
+    signs = np.sign(rate[fast])
+    changes = signs[1:] != signs[:-1]
+    if where is not None:
+        changes &= np.asarray(where, dtype=bool)[fast][1:]
+    return int(np.count_nonzero(changes))
 
 
 def pedal_changes(pedal: np.ndarray, dead_band: float = PEDAL_DEAD_BAND) -> int:
