@@ -89,20 +89,18 @@ class Plan:
     is applied a period; the rest guides the next linearisation, or stands in for a failed
     solve."""
 
-    def __init__(self, Np: int, Nc: int, m: int) -> None:
-        self.Np, self.Nc, self.m = Np, Nc, m
+    def __init__(self, Np: int, Nc: int) -> None:
+        self.Np, self.Nc = Np, Nc
         self.moves: np.ndarray | None = None
         self.step = 0
-        self.last_increment = np.zeros(m)  # the move applied last, v_t − v_{t−1} (0 at a start)
 
     def clear(self) -> None:
         """No plan (a run's start)."""
-        self.moves, self.step, self.last_increment = None, 0, np.zeros(self.m)
+        self.moves, self.step = None, 0
 
     def adopt(self, v_prev: np.ndarray, dv: np.ndarray) -> np.ndarray:
         """The solved increments from v_prev as the plan, its first move applied now."""
         self.moves, self.step = v_prev + np.cumsum(dv, axis=0), 1
-        self.last_increment = np.array(dv[0], dtype=float)
         return self.moves
 
     def guess(self, v_prev: np.ndarray) -> np.ndarray:
@@ -120,7 +118,6 @@ class Plan:
         rest = self.moves[min(self.step, self.Nc - 1) :]
         rest = np.vstack([rest, np.repeat(rest[-1:], self.Nc - len(rest), axis=0)])
         self.step += 1
-        self.last_increment = rest[0] - v_prev
         return rest, np.diff(np.vstack([v_prev, rest]), axis=0)
 
 

@@ -47,8 +47,7 @@ from scipy.linalg import cho_factor, cho_solve
 from controllers.active_set import HotActiveSet, dense_dual
 from controllers.condensing import (
     block_cumulative,
-    increment_weights,
-    last_increment_cost,
+    block_diagonal,
 )
 from controllers.daqp_solver import DAQPSolver
 from controllers.piqp_solver import PIQPSolver
@@ -97,7 +96,6 @@ class QPSettings(TypedDict):
     active_set: NotRequired[bool]  # True
     active_set_max_iter: NotRequired[int]  # 100
     qp_solver: NotRequired[str]  # "daqp"
-    R_change: NotRequired[np.ndarray]  # (m, m) weight on the increment's change; none: zero
 
 
 class CondensedQP:
@@ -114,10 +112,6 @@ class CondensedQP:
         active_set_max_iter: factorizations before our active set hands over to PIQP; 100
             bounds a solve at about 4 ms + PIQP, inside the 10 ms period.
         qp_solver: which active-set solver, one of QP_SOLVERS.
-        R_change: (m, m) weight on each increment's change from the one before,
-            Σ_k ||Δv_k − Δv_{k−1}||², the first against the increment applied last step
-            (``last_increment``): a saw reverses its increment every step and pays for
-            it, a smooth manoeuvre's ramp barely does. None or zero: the paper's cost.
     """
 
     def __init__(
@@ -154,11 +148,6 @@ class CondensedQP:
         self.v_min = np.asarray(settings["v_min"], float)
         self.v_max = np.asarray(settings["v_max"], float)
         self.dv_max = np.asarray(settings["dv_max"], float)
-        change = settings.get("R_change")
-        self._R_change = None if change is None or not np.any(change) else np.asarray(change, float)
-        # The increment applied last step (normalized): with R_change the first increment's
-        # change counts from it; the controller sets it before each solve, a run starts at 0.
-        self.last_increment = np.zeros(m)
 
     # ---- built once per model -------------------------------------------------------------
 
@@ -187,21 +176,18 @@ class CondensedQP:
         self.theta = theta.reshape(n * Np, m * Nc)
 
     def _build_cost(self, Q: np.ndarray, R: np.ndarray) -> None:
-        n, Np, M = self.n, self.Np, self.m * self.Nc
+        n, Np, Nc, M = self.n, self.Np, self.Nc, self.m * self.Nc
         self.Q, self._R = np.asarray(Q, float), np.asarray(R, float)
         q_theta = np.einsum("ab,ibm->iam", self.Q, self.theta.reshape(Np, n, M)).reshape(n * Np, M)
         self._theta_q = np.ascontiguousarray(q_theta.T)  # ΘᵀQ, (M, n Np)
-        hessian = self.theta.T @ q_theta + increment_weights(self._R, self._R_change, self.Nc)
+        hessian = self.theta.T @ q_theta + block_diagonal(self._R, Nc)
         self.P = np.zeros((M + 1, M + 1))
         self.P[:M, :M] = 2 * hessian
         self.P[M, M] = 2 * self.rho
         self.P = np.asfortranarray((self.P + self.P.T) / 2)
         # Unconstrained optimum x_u = -P⁻¹c = F [z; v; Y_ref] (ε_u = 0): one product per step.
-        factor = cho_factor(self.P[:M, :M])
-        gain = cho_solve(factor, 2 * q_theta.T)  # P⁻¹·2ΘᵀQ
+        gain = cho_solve(cho_factor(self.P[:M, :M]), 2 * q_theta.T)  # P⁻¹·2ΘᵀQ
         self._x_u = np.hstack([-gain @ self.phi_z, -gain @ self.phi_v, gain])
-        if self._R_change is not None:  # x_u's part from the last increment: -P⁻¹ c_last
-            self._x_u_last = -cho_solve(factor, last_increment_cost(self._R_change, self.Nc))
 
     def _build_constraints(self) -> None:
         """Rows G x <= b (b moves with v_{t-1}): they depend on the limits, never on the model."""
@@ -259,9 +245,8 @@ class CondensedQP:
         self._piqp.set_input_bounds(v_min, v_max)
 
     def reset(self) -> None:
-        """Forget the previous active set and increment (a new run starts cold)."""
+        """Forget the previous active set (a new run starts cold)."""
         self._active.guess[:] = False
-        self.last_increment = np.zeros(self.m)
         self._daqp.reset(build=self.active_set and self.qp_solver == "daqp" and self.has_model())
 
     def prepare_solvers(self) -> None:
@@ -280,8 +265,6 @@ class CondensedQP:
     def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
         """x_u = [ΔV; 0], the minimizer of J without constraints."""
         dv = self._x_u @ np.concatenate([z, v_prev, y_ref])
-        if self._R_change is not None:
-            dv = dv + self._x_u_last @ self.last_increment
         return np.append(dv, 0.0)
 
     def bounds(self, v_prev: np.ndarray) -> np.ndarray:
@@ -334,8 +317,6 @@ class CondensedQP:
         e = self.free_response(z, v_prev) - y_ref
         c = np.zeros(M + 1)
         c[:M] = 2 * self._theta_q @ e
-        if self._R_change is not None:
-            c[:M] += last_increment_cost(self._R_change, self.Nc) @ self.last_increment
         x, iterations, status = self._piqp.solve(c, self.P, v_prev)
         if x is None:
             zeros = np.zeros((self.Nc, self.m))
@@ -354,13 +335,8 @@ class CondensedQP:
     def cost(
         self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray, dv: np.ndarray, slack: float
     ) -> float:
-        """J of eq. (20), constant included: ||Y - Y_ref||²_Q + ||ΔV||²_R + ρε², and the
-        increments' changes' ||·||²_{R_change} where it is set."""
+        """J of eq. (20), constant included: ||Y - Y_ref||²_Q + ||ΔV||²_R + ρε²."""
         error = (self.predict(z, v_prev, dv).ravel() - y_ref).reshape(self.Np, self.n)
         dv = np.reshape(dv, (self.Nc, self.m))
         tracking = np.einsum("ia,ab,ib->", error, self.Q, error)
-        cost = tracking + np.einsum("ia,ab,ib->", dv, self._R, dv) + self.rho * slack**2
-        if self._R_change is not None:
-            change = np.diff(np.vstack([self.last_increment, dv]), axis=0)
-            cost += np.einsum("ia,ab,ib->", change, self._R_change, change)
-        return float(cost)
+        return float(tracking + np.einsum("ia,ab,ib->", dv, self._R, dv) + self.rho * slack**2)

@@ -16,8 +16,6 @@ __all__ = [
     "block_cumulative",
     "block_diagonal",
     "free_response_maps",
-    "increment_weights",
-    "last_increment_cost",
     "time_invariant_theta",
     "time_varying_theta",
 ]
@@ -31,27 +29,6 @@ def block_diagonal(block: np.ndarray, count: int) -> np.ndarray:
     index = np.arange(count)
     blocks[index, :, index, :] = block
     return blocks.reshape(count * m, count * m)
-
-
-def increment_weights(R: np.ndarray, change: np.ndarray | None, count: int) -> np.ndarray:
-    """The Hessian's block of the increments' own costs over ``count`` steps: R on each, and
-    ``change`` (R_change) on each one's change from the one before, Dᵀ change D, D ΔV = (Δv_0,
-    Δv_1 − Δv_0, ...); Δv_{−1}, the increment applied last, enters the linear term
-    (:func:`last_increment_cost`)."""
-    weights = block_diagonal(R, count)
-    if change is None:
-        return weights
-    difference = np.eye(count) - np.eye(count, k=-1)
-    return weights + np.kron(difference.T @ difference, change)
-
-
-def last_increment_cost(change: np.ndarray, count: int) -> np.ndarray:
-    """(m count, m): the linear term's map from the increment applied last, -2 E₀ᵀ R_change
-    (||Δv_0 − Δv_{−1}||²_{R_change} less its constant; ``change`` is R_change)."""
-    m = change.shape[0]
-    block = np.zeros((m * count, m))
-    block[:m] = -2 * change
-    return block
 
 
 def block_cumulative(count: int, m: int) -> np.ndarray:

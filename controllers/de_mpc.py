@@ -88,10 +88,6 @@ class DEMPCConfig:
     # (docs/findings/lane_change.md, "The physics baseline").
     Q: Any = (1000.0, 10.0, 1000.0)
     R: Any = 5.0  # normalized input-increment weight: scalar, m diagonal entries or m x m
-    # Ours: as R, on each increment's change from the one before (the last applied included): a
-    # saw reverses its increment each step and pays for it, a smooth ramp barely; 0: the paper's
-    # cost (docs/findings/smooth_driving.md, "The paper's 10/7 controller").
-    R_change: Any = 0.0
     rho: float = 10.0  # slack weight; the slack is relative to each increment limit
     steer_wheel_min_deg: float = -STEER_WHEEL_LIMIT_DEG
     steer_wheel_max_deg: float = STEER_WHEEL_LIMIT_DEG
@@ -213,7 +209,6 @@ class DEMPCConfig:
             finite(key + name, getattr(self, name))
         _check_qp_size(Np, Nc)
         self.weights()
-        _weight("R_change", self.R_change, INPUTS, definite=False)
         self.path_weights()
         _check_range("steer_wheel", self.steer_wheel_min_deg, self.steer_wheel_max_deg, "_deg")
         _check_range("pedal", self.pedal_min, self.pedal_max, "")
@@ -251,7 +246,6 @@ class DEMPCConfig:
             "Nc": int(self.Nc),
             "Q": Q,
             "R": R,
-            "R_change": _weight("R_change", self.R_change, INPUTS, definite=False),
             "v_min": low,
             "v_max": high,
             "dv_max": self.increment_limits(normalizer),
@@ -359,9 +353,8 @@ def _check_qp_size(Np: int, Nc: int) -> None:
     check_memory("controller.Np and controller.Nc", what, 8 * doubles)
 
 
-def _weight(key: str, value: Any, size: int, definite: bool = True) -> np.ndarray:
-    """A scalar (times I), a diagonal or a full symmetric positive-definite matrix
-    (``definite=False``: semidefinite)."""
+def _weight(key: str, value: Any, size: int) -> np.ndarray:
+    """A scalar (times I), a diagonal or a full symmetric positive-definite matrix."""
     try:
         array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -378,10 +371,9 @@ def _weight(key: str, value: Any, size: int, definite: bool = True) -> np.ndarra
     if not np.allclose(array, array.T) or not np.all(np.isfinite(array)):
         raise ValueError(f"controller.{key} must be symmetric and finite")
     smallest = float(np.linalg.eigvalsh(array).min())
-    if smallest < 0 or (definite and smallest == 0):
-        kind = "definite" if definite else "semidefinite"
+    if smallest <= 0:
         raise ValueError(
-            f"controller.{key} must be positive {kind} (smallest eigenvalue {smallest:g})"
+            f"controller.{key} must be positive definite (smallest eigenvalue {smallest:g})"
         )
     return array
 

@@ -166,7 +166,6 @@ class PathTracking:
         self._hint: int | None = None
         self._band_held: float | None = None
         self._step_bounds: tuple[np.ndarray, np.ndarray] | None = None
-        self._step_increment: np.ndarray | None = None
 
     def follow(self, path: ReferencePath | None) -> None:
         """Follow ``path`` from the next step on (None: the run tracks states)."""
@@ -188,12 +187,6 @@ class PathTracking:
         self._step_bounds = (v_min, v_max)
         for each in self.qps():
             each.set_input_bounds(v_min, v_max)
-
-    def set_last_increment(self, dv: np.ndarray) -> None:
-        """The increment applied last step on every path QP (and on those built later)."""
-        self._step_increment = dv
-        for each in self.qps():
-            each.last_increment = dv
 
     def reference(
         self, x: np.ndarray, pose: np.ndarray, y_ref: np.ndarray
@@ -286,8 +279,6 @@ class PathTracking:
         qp.prepare_solvers()
         if self._step_bounds is not None:  # built mid-step: the step's bounds
             qp.set_input_bounds(*self._step_bounds)
-        if self._step_increment is not None:  # and the step's last increment
-            qp.last_increment = self._step_increment
         self._band_qps[band] = qp  # the most recently used end
         while len(self._band_qps) > BAND_QPS:
             self._band_qps.popitem(last=False)

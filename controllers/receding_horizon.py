@@ -104,7 +104,7 @@ class DEMPC:
         self.pedal_sides = None if margin is None else PedalSides.of(margin, self.normalizer)
         self.delay_steps = COMPUTE_DELAYS[config.compute_delay]
         self.clock = Clock(self.delay_steps, self.dt, self._model_step, C, self.normalizer)
-        self.plan = Plan(self.Np, self.Nc, INPUTS)
+        self.plan = Plan(self.Np, self.Nc)
         self._reference: np.ndarray | None = None
         self._reference_steps = 0
         self._start(None)
@@ -155,7 +155,8 @@ class DEMPC:
 
     def increment_shares(self, inputs: np.ndarray) -> np.ndarray:
         """(T - 1, m) each step's change of each physical input in ``inputs`` (T, m), as a share
-        of the QP's bound on it (normalized); above 1 where the slack let it past."""
+        of its bound (the QP's, normalized: the pedal's on the throttle's or the brake's side
+        as it moved there); above 1 where the slack let it past."""
         v = self.normalizer.inputs(np.asarray(inputs, dtype=float))
         return np.abs(np.diff(v, axis=0)) / self._dv_max
 
@@ -215,7 +216,8 @@ class DEMPC:
             plan, dv = self.plan.fallback(v_prev)
             first = plan[0]
         u = np.clip(self.normalizer.inputs_inverse(first), self.u_min, self.u_max)
-        # The input is ready: the rest is the next step's bookkeeping (the feedback phase's end).
+        # The input is ready: the rest is bookkeeping for the next step and the record, work of
+        # the period after the input is sent (the harness times the feedback phase to here).
         ready = time.perf_counter()
         if solution.ok:
             plan, dv = self.plan.adopt(v_prev, solution.dv), solution.dv
@@ -251,8 +253,8 @@ class DEMPC:
         ok: bool,
         k: int,
     ) -> np.ndarray:
-        """(Np, 3) normalized states the plan predicts, row i i + 1 steps after the measurement:
-        kept for the next linearisation and the pedal's side."""
+        """(Np, 3) normalized states the plan predicts, row i i + 1 steps after the measurement
+        (with or without delay); kept for the next linearisation and the pedal's side."""
         assert self._reference is not None
         if qp.has_model():
             predicted = qp.predict(z, v_prev, dv)[:, :STATES]
@@ -274,11 +276,8 @@ class DEMPC:
         w: np.ndarray | None,
         where: Where | None,
     ) -> tuple[QPSolution, np.ndarray]:
-        """The step's QP from z (prepared, or here in one phase), and the shift of the
-        predicted outputs by w that a lifted-linear states QP leaves out."""
-        self.qp.last_increment = self.plan.last_increment
-        if self.path is not None:
-            self.path.set_last_increment(self.plan.last_increment)
+        """The step's QP from z (the prepared one, or prepared here in one phase), and the
+        shift of the predicted outputs by w that a lifted-linear states QP leaves out."""
         shift = np.zeros_like(y_ref)
         if self.linearised is None and where is not None:
             assert self.path is not None

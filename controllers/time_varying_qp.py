@@ -15,9 +15,8 @@ from scipy.linalg.lapack import dpotrf, dpotrs
 from controllers.active_set import structured_dual
 from controllers.condensed_qp import SMALL_LIFT, CondensedQP, QPSettings
 from controllers.condensing import (
+    block_diagonal,
     free_response_maps,
-    increment_weights,
-    last_increment_cost,
     time_invariant_theta,
     time_varying_theta,
 )
@@ -44,7 +43,7 @@ class TimeVaryingQP(CondensedQP):
         self.C = np.ascontiguousarray(C, dtype=float)
         self.Q, self._R = np.asarray(settings["Q"], float), np.asarray(settings["R"], float)
         Np, Nc = self.Np, self.Nc
-        self._R_blocks = increment_weights(self._R, self._R_change, Nc)
+        self._R_blocks = block_diagonal(self._R, Nc)
         M = self.m * Nc
         # Until the first set_model: a model without input effect (P = 2 diag(R, ρ)).
         self.theta = np.zeros((self.n * Np, M))
@@ -161,9 +160,6 @@ class TimeVaryingQP(CondensedQP):
         if info != 0:  # R > 0 makes the block definite; only a non-finite model gets here
             raise np.linalg.LinAlgError(f"time-varying QP Hessian not positive definite ({info})")
         self._gain = dpotrs(factor, 2 * q_theta.T, lower=1)[0]
-        if self._R_change is not None:  # the unconstrained part from the last increment
-            linear = last_increment_cost(self._R_change, self.Nc)
-            self._gain_last = -dpotrs(factor, linear, lower=1)[0]
         self._daqp.new_hessian(factor=factor)  # its rows G L⁻ᵀ built when first needed
         self._theta_set = True
         self._piqp.new_hessian()  # P_V built when PIQP is asked (most steps it is not)
@@ -194,8 +190,6 @@ class TimeVaryingQP(CondensedQP):
 
     def unconstrained(self, z: np.ndarray, v_prev: np.ndarray, y_ref: np.ndarray) -> np.ndarray:
         dv = self._gain @ (y_ref - self.free_response(z, v_prev))
-        if self._R_change is not None:
-            dv = dv + self._gain_last @ self.last_increment
         return np.append(dv, 0.0)
 
     def predict(self, z: np.ndarray, v_prev: np.ndarray, dv: np.ndarray) -> np.ndarray:
